@@ -1,0 +1,34 @@
+# safemimic: the commands a newcomer types. Each creates .venv itself and installs what it needs.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: help install test bench demo clean
+
+help:
+	@echo "make demo   run the stack end to end on this machine and print what happens"
+	@echo "make test   run the whole test suite (real Zenoh, MuJoCo, Pinocchio, QP solvers)"
+	@echo "make bench  run the benchmarks, print a table, write JSON under bench/results/"
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+# pytest exit 5 means "no tests collected": that is a failure here, never a silent pass.
+test: $(STAMP)
+	@$(PY) -m pytest -q; rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests" >&2; exit 1; fi; exit $$rc
+
+bench: $(STAMP)
+	$(PY) -m safemimic.cli bench
+
+demo: $(STAMP)
+	$(PY) -m safemimic.cli demo
+
+clean:
+	rm -rf $(VENV) .pytest_cache .hypothesis build *.egg-info bench/results/*.json

@@ -1,0 +1,1 @@
+"""Benchmarks (``make bench`` / ``safemimic bench``): each writes JSON under bench/results/."""

@@ -1,0 +1,46 @@
+"""``safemimic bench`` / ``make bench``: run benchmarks, print a table, write JSON per benchmark."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+from pathlib import Path
+
+from bench.common import RESULTS_DIR, write_result
+
+#: benchmark name → module with ``run(**kwargs) -> dict`` (later issues add safety_step, latency, ...).
+BENCHMARKS: dict[str, str] = {
+    "codec": "bench.codec",
+}
+
+
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    parser = parser or argparse.ArgumentParser(prog="safemimic bench")
+    parser.description = "Run benchmarks; each writes OUT/<name>.json with name, p50, p99, unit and the machine."
+    parser.add_argument("names", nargs="*", choices=[[], *BENCHMARKS], metavar="NAME", help=f"benchmarks to run (default: all of {', '.join(BENCHMARKS)})")
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="result folder (default: bench/results)")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write all results into one JSON file")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    results = []
+    for name in args.names or list(BENCHMARKS):
+        print(f"running {name} ...", flush=True)
+        result = importlib.import_module(BENCHMARKS[name]).run()
+        path = write_result(result, args.out)
+        results.append(result)
+        print(f"  wrote {path}")
+    print(f"\n{'benchmark':<16}{'p50':>12}{'p99':>12}  unit  budget")
+    for r in results:
+        budget = r.get("budget_p50")
+        verdict = "" if budget is None else ("ok" if r["p50"] <= budget else "OVER") + f" (p50 ≤ {budget})"
+        print(f"{r['name']:<16}{r['p50']:>12.2f}{r['p99']:>12.2f}  {r['unit']:<4}  {verdict}")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run(build_parser().parse_args()))

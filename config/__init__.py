@@ -1,0 +1,1 @@
+"""Shipped configuration files (YAML, robot descriptions, Zenoh configs); read via shared.config."""

@@ -1,0 +1,55 @@
+"""The ``safemimic`` command: one entry point, one subcommand per service or tool.
+
+A subcommand's module is imported only when it runs, so a perception-only install
+(``pip install safemimic[perception]``) never imports MuJoCo or Pinocchio.
+Each module provides ``build_parser(parser)`` and ``run(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from safemimic import __version__
+
+#: subcommand → (module, one-line help). Later issues add perception, safety, executor, ...
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "router": ("services.router.main", "run a Zenoh router (zenoh's own, router mode) for clients on several hosts"),
+    "bench": ("bench.run", "run the benchmarks, print a table and write JSON under bench/results/"),
+    "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),
+}
+
+
+def _top_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="safemimic",
+        description="Safe human-to-humanoid motion imitation: perception → CBF-QP safety layer → robot, over Zenoh.",
+        epilog="Run 'safemimic COMMAND --help' for the options of a command.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"safemimic {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
+    for name, (_, help_text) in SUBCOMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] not in SUBCOMMANDS:
+        parser = _top_parser()
+        parser.parse_args(argv)  # handles --help, --version and unknown commands
+        parser.print_help()
+        return 2
+    name, rest = argv[0], argv[1:]
+    module = importlib.import_module(SUBCOMMANDS[name][0])
+    parser = module.build_parser(argparse.ArgumentParser(prog=f"safemimic {name}"))
+    args = parser.parse_args(rest)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    return int(module.run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

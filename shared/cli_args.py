@@ -1,0 +1,45 @@
+"""Command-line flags shared by every service (zenoh-python examples style).
+
+``--config FILE``, ``--mode``, ``--connect``, ``--listen``, ``--no-multicast``, ``--robot-id``;
+the parsed flags become overrides on top of the YAML file and the environment.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from shared.config import StackConfig, deep_merge, load_config
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the common configuration and Zenoh flags to ``parser``."""
+    group = parser.add_argument_group("configuration and bus")
+    group.add_argument("--config", "-c", metavar="FILE", help="stack configuration YAML (default: shipped config/default.yaml or $SAFEMIMIC_CONFIG)")
+    group.add_argument("--mode", "-m", choices=["peer", "client", "router"], help="Zenoh session mode")
+    group.add_argument("--connect", "-e", action="append", metavar="ENDPOINT", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)")
+    group.add_argument("--listen", "-l", action="append", metavar="ENDPOINT", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    group.add_argument("--no-multicast", action="store_true", help="disable Zenoh multicast scouting (use explicit endpoints)")
+    group.add_argument("--robot-id", metavar="ID", help="robot id in the key expressions safemimic/{robot_id}/...")
+
+
+def bus_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The overrides implied by the common flags (only those given)."""
+    bus: dict[str, Any] = {}
+    if args.mode:
+        bus["mode"] = args.mode
+    if args.connect:
+        bus["connect"] = list(args.connect)
+    if args.listen:
+        bus["listen"] = list(args.listen)
+    if args.no_multicast:
+        bus["multicast_scouting"] = False
+    overrides: dict[str, Any] = {"bus": bus} if bus else {}
+    if args.robot_id:
+        overrides["robot_id"] = args.robot_id
+    return overrides
+
+
+def config_from_args(args: argparse.Namespace, extra: dict[str, Any] | None = None) -> StackConfig:
+    """Load the configuration: file, environment, then the flags, then ``extra``."""
+    return load_config(args.config, overrides=deep_merge(bus_overrides(args), extra or {}))

@@ -1,0 +1,216 @@
+"""Stack configuration: ``config/default.yaml`` → pydantic models, with environment overrides.
+
+Load order: the YAML file (default: the shipped ``config/default.yaml``, or ``$SAFEMIMIC_CONFIG``),
+then environment variables ``SAFEMIMIC__SECTION__FIELD=value`` (value parsed as YAML), then
+explicit overrides. Every error is a :class:`ConfigError` naming the offending dotted field.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+from collections.abc import Mapping
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from shared.names import IMITATION_JOINT_NAMES
+
+ENV_PREFIX = "SAFEMIMIC__"
+CONFIG_ENV = "SAFEMIMIC_CONFIG"
+#: Folder of the shipped configuration files (``config/`` next to ``shared/``).
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+DEFAULT_CONFIG_PATH = CONFIG_DIR / "default.yaml"
+
+N_JOINTS = len(IMITATION_JOINT_NAMES)
+JointVector = Annotated[list[float], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+
+
+class ConfigError(ValueError):
+    """A configuration file, override or update is invalid; the message names the field."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
+
+
+class BusMode(str, Enum):
+    PEER = "peer"
+    CLIENT = "client"
+    ROUTER = "router"
+
+
+class BusConfig(_Section):
+    """Zenoh session settings (DESIGN §1, §11)."""
+
+    mode: BusMode = BusMode.PEER
+    connect: list[str] = Field(default_factory=list)
+    listen: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = True
+    max_message_bytes: int = Field(default=262144, ge=1024, le=64 * 1024 * 1024)
+    lease_ms: int = Field(default=1000, ge=100, le=60000)
+
+
+class RobotConfig(_Section):
+    """Which robot description to use (robots/*.yaml) and an optional model override."""
+
+    spec: str = "robots/g1.yaml"
+    model: str | None = None
+
+
+class RetargetingConfig(_Section):
+    """Paper eq. 2: q_nom = clip(q_home + S ⊙ (θ − θ_home) + b, q_min, q_max)."""
+
+    scale: JointVector = Field(default_factory=lambda: [1.0] * N_JOINTS)
+    offset: JointVector = Field(default_factory=lambda: [0.0] * N_JOINTS)
+    theta_home: JointVector = Field(default_factory=lambda: [0.0] * N_JOINTS)
+    mirror: bool = False
+
+
+class QPBackendName(str, Enum):
+    DAQP = "daqp"
+    OSQP = "osqp"
+
+
+class SafetyConfig(_Section):
+    """CBF-QP parameters (paper eqs. 3–9; DESIGN §4)."""
+
+    rate_hz: float = Field(default=500.0, gt=0, le=5000)
+    status_rate_hz: float = Field(default=50.0, gt=0, le=1000)
+    gamma: float = Field(default=10.0, gt=0, le=1000, description="class-K gain γ (1/s)")
+    phi: float = Field(default=0.02, ge=0, le=0.5, description="barrier margin φ (m)")
+    gain: float = Field(default=8.0, gt=0, le=1000, description="K of u_ref = K (q_nom − q_cbf) (1/s)")
+    weights: JointVector = Field(default_factory=lambda: [1.0] * N_JOINTS)
+    u_max: JointVector = Field(default_factory=lambda: [4.0] * N_JOINTS)
+    backend: QPBackendName = QPBackendName.DAQP
+    pairs: str = Field(default="default", pattern=r"^[a-z0-9_]+$")
+    human_velocity_term: bool = True
+    human_timeout_s: float = Field(default=0.5, gt=0, le=60)
+    relax_penalty: float = Field(default=1e4, gt=0)
+
+    @model_validator(mode="after")
+    def _positive_vectors(self) -> SafetyConfig:
+        if min(self.weights) <= 0:
+            raise ValueError("weights must all be > 0 (W ≻ 0)")
+        if min(self.u_max) <= 0:
+            raise ValueError("u_max must all be > 0")
+        return self
+
+
+class ExecutorConfig(_Section):
+    """Simulated (or hardware) executor: joint PD gains and rates."""
+
+    rate_hz: float = Field(default=500.0, gt=0, le=10000)
+    state_rate_hz: float = Field(default=200.0, gt=0, le=2000)
+    kp: float = Field(default=150.0, gt=0)
+    kd: float = Field(default=5.0, ge=0)
+    command_timeout_s: float = Field(default=0.2, gt=0)
+    viewer: bool = False
+
+
+class ApiConfig(_Section):
+    """Config API server."""
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=8080, ge=0, le=65535)
+    store: str | None = None
+
+
+class StackConfig(_Section):
+    """The whole stack's configuration (config/default.yaml)."""
+
+    robot_id: str = Field(default="g1", pattern=r"^[A-Za-z0-9_\-]+$", max_length=64)
+    bus: BusConfig = Field(default_factory=BusConfig)
+    robot: RobotConfig = Field(default_factory=RobotConfig)
+    retargeting: RetargetingConfig = Field(default_factory=RetargetingConfig)
+    safety: SafetyConfig = Field(default_factory=SafetyConfig)
+    executor: ExecutorConfig = Field(default_factory=ExecutorConfig)
+    api: ApiConfig = Field(default_factory=ApiConfig)
+
+
+def _format_validation_error(exc: ValidationError, origin: str) -> str:
+    lines = [f"invalid configuration ({origin}):"]
+    for err in exc.errors(include_url=False):
+        field = ".".join(str(p) for p in err["loc"]) or "<root>"
+        lines.append(f"  {field}: {err['msg']} (got {err.get('input')!r:.80})")
+    return "\n".join(lines)
+
+
+def env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
+    """Nested dict from ``SAFEMIMIC__A__B=value`` variables (keys lower-cased, values parsed as YAML)."""
+    tree: dict[str, Any] = {}
+    for key, raw in environ.items():
+        if not key.startswith(ENV_PREFIX):
+            continue
+        path = [part.lower() for part in key[len(ENV_PREFIX) :].split("__")]
+        if not all(path):
+            raise ConfigError(f"malformed override variable {key!r}")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{'.'.join(path)}: cannot parse {key}={raw!r}: {exc}") from None
+        node = tree
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{key} conflicts with another override")
+        node[path[-1]] = value
+    return tree
+
+
+def deep_merge(base: Mapping[str, Any], patch: Mapping[str, Any]) -> dict[str, Any]:
+    """A new dict: ``base`` with ``patch`` merged in recursively (patch wins on leaves)."""
+    merged = copy.deepcopy(dict(base))
+    for key, value in patch.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = copy.deepcopy(value)
+    return merged
+
+
+def validate_config(data: Mapping[str, Any], origin: str = "config") -> StackConfig:
+    """Validate a nested dict into a :class:`StackConfig`; :class:`ConfigError` names bad fields."""
+    try:
+        return StackConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation_error(exc, origin)) from None
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping; :class:`ConfigError` if missing, unparsable or not a mapping."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path} is not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path} must hold a mapping at top level, not {type(data).__name__}")
+    return data
+
+
+def load_config(
+    path: str | Path | None = None,
+    environ: Mapping[str, str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> StackConfig:
+    """Load the stack configuration: file, then environment overrides, then ``overrides``."""
+    environ = os.environ if environ is None else environ
+    path = Path(path or environ.get(CONFIG_ENV) or DEFAULT_CONFIG_PATH)
+    data = deep_merge(read_yaml(path), env_overrides(environ))
+    if overrides:
+        data = deep_merge(data, overrides)
+    return validate_config(data, origin=str(path))
+
+
+def resolve_config_path(relative: str | Path, base: Path = CONFIG_DIR) -> Path:
+    """Absolute path of a file named in the configuration (relative paths: against ``base``)."""
+    path = Path(relative).expanduser()
+    return path if path.is_absolute() else (base / path).resolve()

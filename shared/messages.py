@@ -1,0 +1,217 @@
+"""Messages exchanged on the bus (DESIGN §5): pydantic v2 models, validated on both ends.
+
+Every message carries ``schema`` (name, version), ``stamp`` (float seconds), ``seq``
+(per-publisher counter) and ``source`` (publisher id). Arrays are numpy arrays with a
+declared shape and dtype; NaN and Inf are rejected wherever a float appears. Unknown
+fields are rejected (``extra="forbid"``).
+"""
+
+from __future__ import annotations
+
+import math
+from enum import Enum
+from typing import Annotated, Any, ClassVar
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    field_validator,
+    model_validator,
+)
+
+from shared.names import CAPSULE_NAMES, IMITATION_JOINT_NAMES, KEYPOINT_NAMES, POSE_ANGLE_NAMES
+
+N_KEYPOINTS = len(KEYPOINT_NAMES)
+N_ANGLES = len(POSE_ANGLE_NAMES)
+N_CAPSULES = len(CAPSULE_NAMES)
+N_JOINTS = len(IMITATION_JOINT_NAMES)
+
+
+def _array_validator(shape: tuple[int, ...], dtype: type) -> BeforeValidator:
+    """Coerce to a C-contiguous ``dtype`` array of exactly ``shape``; floats must be finite."""
+
+    def coerce(value: Any) -> np.ndarray:
+        if isinstance(value, (str, bytes)):
+            raise ValueError(f"expected an array of shape {shape}, got {type(value).__name__}")
+        try:
+            array = np.ascontiguousarray(value, dtype=dtype)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"expected a {np.dtype(dtype).name} array of shape {shape}: {exc}") from None
+        if array.shape != shape:
+            raise ValueError(f"expected shape {shape}, got {array.shape}")
+        if array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise ValueError("array contains NaN or Inf")
+        return array
+
+    return BeforeValidator(coerce)
+
+
+_as_list = PlainSerializer(lambda a: a.tolist(), when_used="json")
+
+
+def Array(*shape: int, dtype: type = np.float64) -> Any:
+    """Annotated numpy array type of a declared shape (use as a field type)."""
+    return Annotated[np.ndarray, _array_validator(tuple(shape), dtype), _as_list]
+
+
+class Schema(BaseModel):
+    """Name and version of a message type; the codec dispatches on it."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    name: str = Field(max_length=64)
+    version: int = Field(ge=1)
+
+
+class Message(BaseModel):
+    """Base of every bus message: schema, stamp, seq, source."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        allow_inf_nan=False,
+        arbitrary_types_allowed=True,
+        populate_by_name=True,
+        validate_assignment=False,
+    )
+    SCHEMA_NAME: ClassVar[str] = "message"
+    SCHEMA_VERSION: ClassVar[int] = 1
+
+    schema_: Schema = Field(default=None, alias="schema", validate_default=True)  # type: ignore[assignment]
+    stamp: float = Field(description="seconds: monotonic for control, wall clock for logs")
+    seq: int = Field(default=0, ge=0, lt=2**63)
+    source: str = Field(default="", max_length=64)
+
+    @field_validator("schema_", mode="before")
+    @classmethod
+    def _default_schema(cls, value: Any) -> Any:
+        return {"name": cls.SCHEMA_NAME, "version": cls.SCHEMA_VERSION} if value is None else value
+
+    @model_validator(mode="after")
+    def _schema_matches_class(self) -> Message:
+        if self.schema_.name != self.SCHEMA_NAME or self.schema_.version != self.SCHEMA_VERSION:
+            raise ValueError(
+                f"schema {self.schema_.name}/v{self.schema_.version} does not match "
+                f"{self.SCHEMA_NAME}/v{self.SCHEMA_VERSION}"
+            )
+        return self
+
+
+class HumanState(Message):
+    """The filtered human as perception sees it, in the robot frame (z up, metres).
+
+    ``keypoints[k]`` is canonical keypoint k (shared.names.KEYPOINT_NAMES), meaningful only where
+    ``keypoint_valid[k]``. ``theta`` is the reduced pose (paper eq. 1), valid where ``theta_valid``.
+    ``capsules[i] = (a_i, b_i)`` endpoints of human capsule i (CAPSULE_NAMES) with radius
+    ``capsule_radii[i]``, valid where ``capsule_valid``. ``capsule_velocities`` (m/s, same shape as
+    ``capsules``) are the measured endpoint velocities when perception provides them.
+    """
+
+    SCHEMA_NAME: ClassVar[str] = "HumanState"
+    keypoints: Array(N_KEYPOINTS, 3)
+    keypoint_valid: Array(N_KEYPOINTS, dtype=np.bool_)
+    theta: Array(N_ANGLES)
+    theta_valid: Array(N_ANGLES, dtype=np.bool_)
+    capsules: Array(N_CAPSULES, 2, 3)
+    capsule_radii: Array(N_CAPSULES)
+    capsule_valid: Array(N_CAPSULES, dtype=np.bool_)
+    capsule_velocities: Array(N_CAPSULES, 2, 3) | None = None
+    frame_id: str = Field(default="robot", max_length=32)
+    capture_stamp: float | None = Field(default=None, description="when the camera frame was taken")
+
+    @field_validator("capsule_radii")
+    @classmethod
+    def _radii_non_negative(cls, value: np.ndarray) -> np.ndarray:
+        if (value < 0).any() or (value > 1.0).any():
+            raise ValueError("capsule radii must lie in [0, 1] m")
+        return value
+
+
+class JointState(Message):
+    """Measured state of the 8 imitation joints (IMITATION_JOINT_NAMES order): rad, rad/s."""
+
+    SCHEMA_NAME: ClassVar[str] = "JointState"
+    q: Array(N_JOINTS)
+    dq: Array(N_JOINTS)
+
+
+class SafetyMode(str, Enum):
+    """What the safety layer did this step."""
+
+    NOMINAL = "nominal"  # no CBF row binds: u* = u_ref
+    ACTIVE = "active"  # some CBF rows bind: u* bent away from u_ref
+    RELAXED = "relaxed"  # rows infeasible: slack-relaxed QP solved
+    HOLD = "hold"  # relaxed QP failed too (or no valid input): hold position, u* = 0
+
+
+class JointCommand(Message):
+    """Safe joint target q_cbf (rad) and velocity u* (rad/s) for the 8 imitation joints (paper eq. 9)."""
+
+    SCHEMA_NAME: ClassVar[str] = "JointCommand"
+    q: Array(N_JOINTS)
+    dq: Array(N_JOINTS)
+    mode: SafetyMode = SafetyMode.NOMINAL
+    human_stamp: float | None = Field(default=None, description="stamp of the HumanState used")
+    human_seq: int | None = Field(default=None, ge=0)
+
+
+class SafetyStatus(Message):
+    """Periodic report of the safety service (paper eqs. 4–8 quantities, counters)."""
+
+    SCHEMA_NAME: ClassVar[str] = "SafetyStatus"
+    mode: SafetyMode
+    min_h_self: float | None = Field(description="min h over self pairs (m); None if no pair")
+    min_h_human: float | None = Field(description="min h over robot–human pairs (m); None if no human")
+    active_constraints: int = Field(ge=0)
+    total_constraints: int = Field(ge=0)
+    qp_solve_time_ms: float = Field(ge=0)
+    step_time_ms: float = Field(ge=0)
+    deadline_misses: int = Field(default=0, ge=0)
+    human_stale: bool = False
+    dropped: dict[str, int] = Field(default_factory=dict, description="invalid messages per topic")
+    config_version: int = Field(default=0, ge=0)
+    backend: str = Field(default="", max_length=32)
+
+
+def _check_json_finite(value: Any, path: str = "config") -> None:
+    """Reject NaN/Inf anywhere in a JSON-like tree (msgpack lets floats through unchecked)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{path} is not finite")
+    if isinstance(value, (np.ndarray, np.generic)):  # the codec decodes ND_EXT blobs anywhere in the tree
+        if value.dtype.kind in "fc" and not np.isfinite(value).all():
+            raise ValueError(f"{path} is not finite")
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise ValueError(f"{path} has a non-string key")
+            _check_json_finite(item, f"{path}.{key}")
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            _check_json_finite(item, f"{path}[{i}]")
+
+
+class ConfigUpdate(Message):
+    """An accepted configuration change, published by the config API (the single writer).
+
+    ``config`` is the whole validated stack configuration (shared.config.StackConfig as JSON);
+    ``changed`` lists the dotted paths that changed; services apply it at their next step.
+    """
+
+    SCHEMA_NAME: ClassVar[str] = "ConfigUpdate"
+    version: int = Field(ge=0)
+    changed: list[str] = Field(default_factory=list, max_length=256)
+    config: dict[str, Any]
+
+    @field_validator("config")
+    @classmethod
+    def _finite(cls, value: dict[str, Any]) -> dict[str, Any]:
+        _check_json_finite(value)
+        return value
+
+
+#: Every message type by schema name: the codec's registry.
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.SCHEMA_NAME: cls for cls in (HumanState, JointState, JointCommand, SafetyStatus, ConfigUpdate)
+}

@@ -1,0 +1,165 @@
+"""Real Zenoh on 127.0.0.1 between two OS processes: peer-to-peer and through `safemimic router`."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from shared.bus import TOPICS, Bus, topic_key
+from shared.config import BusConfig
+from shared.messages import (
+    ConfigUpdate,
+    HumanState,
+    JointCommand,
+    JointState,
+    Message,
+    SafetyMode,
+    SafetyStatus,
+)
+from tests.conftest import free_port
+
+pytestmark = pytest.mark.integration
+
+
+def sample_messages() -> dict[str, Message]:
+    rng = np.random.default_rng(7)
+    return {
+        "human/state": HumanState(
+            stamp=1.5,
+            keypoints=rng.normal(size=(15, 3)),
+            keypoint_valid=rng.random(15) > 0.2,
+            theta=rng.normal(size=8),
+            theta_valid=np.ones(8, bool),
+            capsules=rng.normal(size=(7, 2, 3)),
+            capsule_radii=np.full(7, 0.06),
+            capsule_valid=np.ones(7, bool),
+            capsule_velocities=rng.normal(size=(7, 2, 3)),
+        ),
+        "robot/joint_state": JointState(stamp=2.0, q=rng.normal(size=8), dq=rng.normal(size=8)),
+        "robot/command": JointCommand(stamp=3.0, q=rng.normal(size=8), dq=rng.normal(size=8), mode=SafetyMode.RELAXED, human_seq=4),
+        "safety/status": SafetyStatus(
+            stamp=4.0, mode=SafetyMode.ACTIVE, min_h_self=0.02, min_h_human=None, active_constraints=3,
+            total_constraints=72, qp_solve_time_ms=0.01, step_time_ms=0.1, dropped={"human/state": 2},
+        ),
+        "config": ConfigUpdate(stamp=5.0, version=3, changed=["safety.gamma"], config={"safety": {"gamma": 4.0}}),
+    }
+
+
+def content(message: Message) -> dict:
+    dumped = message.model_dump(mode="json")
+    dumped.pop("seq"), dumped.pop("source")
+    return dumped
+
+
+class AliveWatcher:
+    def __init__(self) -> None:
+        self.events: list[tuple[str, bool, float]] = []
+        self.changed = threading.Condition()
+
+    def __call__(self, service: str, alive: bool) -> None:
+        with self.changed:
+            self.events.append((service, alive, time.monotonic()))
+            self.changed.notify_all()
+
+    def wait(self, service: str, alive: bool, timeout: float) -> float:
+        with self.changed:
+            ok = self.changed.wait_for(lambda: any(e[:2] == (service, alive) for e in self.events), timeout)
+        assert ok, f"token {service} alive={alive} not seen within {timeout}s: {self.events}"
+        return next(e[2] for e in self.events if e[:2] == (service, alive))
+
+
+def exchange_every_message(spawn, test_bus: BusConfig, node_flags: list[str]) -> None:
+    received: dict[str, Message] = {}
+    got = threading.Condition()
+
+    def keep(topic: str):
+        def on_message(message: Message) -> None:
+            with got:
+                received[topic] = message
+                got.notify_all()
+
+        return on_message
+
+    watcher = AliveWatcher()
+    with Bus(test_bus, "ping", "test") as bus:
+        for topic in TOPICS:
+            bus.subscribe(topic, keep(topic), robot_id="pong")
+        bus.watch_alive(watcher)
+        node = spawn("tests/bus_node.py", *node_flags)
+        node.wait_json("ready")
+        watcher.wait("bus_node", True, timeout=10)
+        publishers = {topic: bus.publisher(topic) for topic in TOPICS}
+        sent = sample_messages()
+        deadline = time.monotonic() + 10
+        while len(received) < len(TOPICS) and time.monotonic() < deadline:
+            for topic, message in sent.items():  # resend: the node's subscriptions may still propagate
+                if topic not in received:
+                    publishers[topic].put(message.model_copy())
+            with got:
+                got.wait(0.2)
+        assert set(received) == set(TOPICS), f"echoed back: {sorted(received)}"
+        for topic, message in sent.items():
+            assert content(received[topic]) == content(message), topic
+            assert type(received[topic]) is TOPICS[topic]
+
+        # A malformed payload is counted by the receiving process and dropped; the node keeps working.
+        bus.put_raw("human/state", b"\x93garbage that is not a message")
+        bus.put_raw("robot/command", sent["human/state"].model_dump_json().encode())
+        assert node.wait_json("dropped")["counts"].get("human/state", 0) >= 1
+        received.clear()
+        publishers["robot/joint_state"].put(sent["robot/joint_state"].model_copy())
+        with got:
+            assert got.wait_for(lambda: "robot/joint_state" in received, 5)
+
+        # The liveliness token of a killed process disappears within 1 s.
+        node.popen.kill()
+        killed = time.monotonic()
+        gone = watcher.wait("bus_node", False, timeout=3)
+        assert gone - killed <= 1.0, f"token vanished after {gone - killed:.2f}s"
+
+
+def test_peer_to_peer_exchange(spawn) -> None:
+    port = free_port()
+    test_bus = BusConfig(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    exchange_every_message(spawn, test_bus, ["--mode", "peer", "--connect", f"tcp/127.0.0.1:{port}", "--no-multicast"])
+
+
+def test_exchange_through_router(spawn) -> None:
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = spawn("-m", "safemimic.cli", "router", "--listen", endpoint, "--no-multicast")
+    router.wait_for(lambda line: "listening on" in line)
+    test_bus = BusConfig(mode="client", connect=[endpoint], multicast_scouting=False)
+    exchange_every_message(spawn, test_bus, ["--mode", "client", "--connect", endpoint, "--no-multicast"])
+
+
+def test_callback_that_raises_does_not_kill_the_session() -> None:
+    port = free_port()
+    conf = BusConfig(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    seen = threading.Event()
+    calls = []
+
+    def flaky(message: Message) -> None:
+        calls.append(message.seq)
+        if len(calls) == 1:
+            raise RuntimeError("boom")
+        seen.set()
+
+    with Bus(conf, "solo", "test") as bus:
+        bus.subscribe("robot/joint_state", flaky)
+        publisher = bus.publisher("robot/joint_state")
+        for _ in range(2):
+            publisher.put(JointState(stamp=0.0, q=np.zeros(8), dq=np.zeros(8)))
+        assert seen.wait(5)
+        assert bus.callback_errors["robot/joint_state"] == 1
+        assert calls == [0, 1]
+
+
+def test_unknown_topic_is_a_clear_error() -> None:
+    with Bus(BusConfig(mode="peer", multicast_scouting=False), "solo", "test") as bus:
+        with pytest.raises(ValueError, match="unknown topic"):
+            bus.publisher("robot/nope")
+    assert topic_key("g1", "human/state") == "safemimic/g1/human/state"
