@@ -1,0 +1,120 @@
+"""Canonical skeleton and the ``.npz`` recording format (DESIGN §3, §6).
+
+A recording holds ``names`` (K canonical keypoint names, any order), ``t`` (T,) seconds,
+``xyz`` (T, K, 3) metres, z up, ``fps`` (scalar), optional ``conf`` (T, K) in [0, 1] and
+``source`` (text). Reading maps the file's keypoints into the canonical order of
+:data:`shared.names.KEYPOINT_NAMES`; keypoints absent from the file are NaN with confidence 0
+(missing, never invented). Extra keys in the file are ignored.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
+
+#: Segments used to check units: a human upper arm/forearm/thigh is 0.15–0.6 m long.
+_UNIT_CHECK_SEGMENTS = (("left_shoulder", "left_elbow"), ("right_shoulder", "right_elbow"), ("left_hip", "left_knee"))
+_MAX_SEGMENT_M = 1.0
+_MAX_COORD_M = 100.0
+
+
+class RecordingError(ValueError):
+    """A recording file is unreadable or violates the format; the message says what and where."""
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A skeleton recording in canonical keypoint order: ``xyz`` (T, 15, 3) m, ``conf`` (T, 15)."""
+
+    t: np.ndarray
+    xyz: np.ndarray
+    conf: np.ndarray
+    fps: float
+    source: str = ""
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(T, 15) bool: keypoint present (finite, confidence > 0)."""
+        return np.isfinite(self.xyz).all(axis=-1) & (self.conf > 0)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def _require(condition: bool, path: Path, message: str) -> None:
+    if not condition:
+        raise RecordingError(f"{path}: {message}")
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read and check a ``.npz`` recording; :class:`RecordingError` on any violation."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise RecordingError(f"{path}: cannot read as .npz: {exc}") from None
+    for key in ("names", "t", "xyz", "fps"):
+        _require(key in arrays, path, f"missing required key {key!r} (has: {', '.join(sorted(arrays))})")
+
+    names = [str(n) for n in np.atleast_1d(arrays["names"])]
+    unknown = [n for n in names if n not in KEYPOINT_INDEX]
+    _require(not unknown, path, f"unknown keypoint names {unknown}; canonical: {', '.join(KEYPOINT_NAMES)}")
+    _require(len(set(names)) == len(names), path, "duplicate keypoint names")
+
+    t = np.asarray(arrays["t"], dtype=np.float64)
+    xyz = np.asarray(arrays["xyz"], dtype=np.float64)
+    _require(t.ndim == 1 and len(t) > 0, path, f"'t' must have shape (T,) with T > 0, got {t.shape}")
+    n_frames = len(t)
+    _require(xyz.shape == (n_frames, len(names), 3), path, f"'xyz' must have shape ({n_frames}, {len(names)}, 3), got {xyz.shape}")
+    _require(bool(np.isfinite(t).all()) and bool((np.diff(t) > 0).all()), path, "'t' must be finite and strictly increasing")
+    fps = float(np.asarray(arrays["fps"]).reshape(()))
+    _require(np.isfinite(fps) and 0 < fps <= 10000, path, f"'fps' must be in (0, 10000], got {fps}")
+
+    conf_in = np.ones((n_frames, len(names))) if "conf" not in arrays else np.asarray(arrays["conf"], dtype=np.float64)
+    _require(conf_in.shape == (n_frames, len(names)), path, f"'conf' must have shape ({n_frames}, {len(names)}), got {conf_in.shape}")
+    _require(bool(((conf_in >= 0) & (conf_in <= 1)).all()), path, "'conf' must lie in [0, 1]")
+
+    finite = np.isfinite(xyz)
+    canonical_xyz = np.full((n_frames, len(KEYPOINT_NAMES), 3), np.nan)
+    canonical_conf = np.zeros((n_frames, len(KEYPOINT_NAMES)))
+    index = [KEYPOINT_INDEX[n] for n in names]
+    canonical_xyz[:, index] = xyz
+    canonical_conf[:, index] = np.where(finite.all(axis=-1), conf_in, 0.0)
+    _check_units(canonical_xyz, path)
+    _require(bool((np.abs(xyz[finite]) < _MAX_COORD_M).all()), path, f"coordinates beyond {_MAX_COORD_M} m from the origin")
+
+    source = str(arrays["source"]) if "source" in arrays else ""
+    return Recording(t=t, xyz=canonical_xyz, conf=canonical_conf, fps=fps, source=source)
+
+
+def _check_units(xyz: np.ndarray, path: Path) -> None:
+    """Limb lengths must be human in metres (catches centimetre or millimetre files)."""
+    for a, b in _UNIT_CHECK_SEGMENTS:
+        lengths = np.linalg.norm(xyz[:, KEYPOINT_INDEX[a]] - xyz[:, KEYPOINT_INDEX[b]], axis=-1)
+        lengths = lengths[np.isfinite(lengths)]
+        if lengths.size:
+            median = float(np.median(lengths))
+            _require(median <= _MAX_SEGMENT_M, path, f"{a}–{b} is {median:.2f} long: units must be metres")
+
+
+def write_recording(path: str | Path, recording: Recording, names: tuple[str, ...] = KEYPOINT_NAMES) -> Path:
+    """Write ``recording`` as ``.npz`` (canonical names; NaN where a keypoint is missing)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    index = [KEYPOINT_INDEX[n] for n in names]
+    np.savez_compressed(
+        path,
+        names=np.array(names),
+        t=recording.t,
+        xyz=recording.xyz[:, index],
+        fps=np.float64(recording.fps),
+        conf=recording.conf[:, index],
+        source=np.array(recording.source),
+    )
+    return path
