@@ -1,0 +1,59 @@
+"""Build the safety pipeline (kinematics, pairs, barrier, filter, retargeter) from configuration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.safety.barrier import CapsuleBarrier
+from services.safety.filter import FilterParams, SafetyFilter
+from services.safety.kinematics import RobotKinematics
+from services.safety.pairs import PairSet, preset_pair_set
+from services.safety.retarget import Retargeter
+from shared.config import CONFIG_DIR, StackConfig, resolve_config_path
+from shared.robot_spec import RobotSpec, load_robot_spec
+
+
+@dataclass
+class SafetyPipeline:
+    """Everything one safety step needs, built once (sizes fixed for a pair set)."""
+
+    spec: RobotSpec
+    kinematics: RobotKinematics
+    pairs: PairSet
+    barrier: CapsuleBarrier
+    filter: SafetyFilter
+    retargeter: Retargeter
+
+
+def load_spec(conf: StackConfig) -> RobotSpec:
+    """The robot description named by ``robot.spec``, with ``robot.model`` overriding its model."""
+    spec = load_robot_spec(resolve_config_path(conf.robot.spec, CONFIG_DIR))
+    if conf.robot.model:
+        spec = spec.model_copy(update={"model": str(resolve_config_path(conf.robot.model, CONFIG_DIR))})
+    return spec
+
+
+def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinematics) -> Retargeter:
+    """Paper eq. 2 with q_home = the spec's neutral pose and S = robot sign ⊙ configured scale."""
+    r = conf.retargeting
+    return Retargeter(
+        q_home=np.asarray(spec.neutral),
+        q_min=kinematics.q_min,
+        q_max=kinematics.q_max,
+        scale=np.asarray(spec.retarget_sign) * np.asarray(r.scale),
+        offset=np.asarray(r.offset),
+        theta_home=np.asarray(r.theta_home),
+        mirror=r.mirror,
+    )
+
+
+def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics: RobotKinematics | None = None) -> SafetyPipeline:
+    """Assemble the safety pipeline for ``conf`` (optionally another pair preset / shared kinematics)."""
+    spec = load_spec(conf) if kinematics is None else kinematics.spec
+    kinematics = kinematics or RobotKinematics(spec)
+    pairs = preset_pair_set(pair_preset or conf.safety.pairs, [tuple(p) for p in spec.self_pairs])
+    barrier = CapsuleBarrier(pairs, kinematics.radii, len(kinematics.joint_names))
+    safety_filter = SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), conf.safety.backend.value)
+    return SafetyPipeline(spec, kinematics, pairs, barrier, safety_filter, make_retargeter(conf, spec, kinematics))

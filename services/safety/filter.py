@@ -1,0 +1,131 @@
+"""The CBF-QP safety filter: one control step (paper eqs. 7–9; DESIGN §4).
+
+    u_ref = K (q_nom − q_cbf)
+    u* = argmin ½ ‖u − u_ref‖²_W  s.t.  A(q_cbf) u ≥ b,  u_lo ≤ u ≤ u_hi
+    q_cbf⁺ = q_cbf + Δt u*
+
+with u_lo/u_hi the velocity bounds intersected with the joint limits reachable in one step.
+If the rows are infeasible (or the solver fails) a relaxed problem with one slack per row,
+min … + ½ ρ ‖σ‖²  s.t.  A u + σ ≥ b, σ ≥ 0, is solved instead; if that fails too the filter
+holds (u* = 0). The mode says which happened; the output is always finite.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.safety.barrier import BarrierRows, CapsuleBarrier
+from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
+from shared.messages import SafetyMode
+
+#: upper bound of a slack variable (m/s of barrier rate): effectively unbounded
+_SLACK_MAX = 1e6
+
+
+@dataclass
+class FilterParams:
+    """The tunable parameters of one step (subset of shared.config.SafetyConfig)."""
+
+    gamma: float
+    phi: float
+    gain: float
+    weights: np.ndarray
+    u_max: np.ndarray
+    relax_penalty: float
+
+    @classmethod
+    def from_config(cls, safety) -> FilterParams:  # shared.config.SafetyConfig
+        return cls(
+            gamma=safety.gamma,
+            phi=safety.phi,
+            gain=safety.gain,
+            weights=np.asarray(safety.weights, dtype=np.float64),
+            u_max=np.asarray(safety.u_max, dtype=np.float64),
+            relax_penalty=safety.relax_penalty,
+        )
+
+
+@dataclass
+class StepResult:
+    """Outcome of one step: the new q_cbf (n,), u* (n,), mode, barrier rows and solver facts."""
+
+    q_cbf: np.ndarray
+    u: np.ndarray
+    u_ref: np.ndarray
+    mode: SafetyMode
+    rows: BarrierRows
+    active_rows: int
+    qp_time_s: float
+    qp_status: QPStatus
+
+
+class SafetyFilter:
+    """Holds q_cbf and filters nominal targets through the capsule CBF-QP."""
+
+    def __init__(self, kinematics, barrier: CapsuleBarrier, params: FilterParams, backend: str = "daqp") -> None:
+        self.kinematics = kinematics
+        self.barrier = barrier
+        self.params = params
+        self.backend_name = backend
+        self._qp: QPBackend = make_backend(backend)
+        self._relaxed_qp: QPBackend = make_backend(backend)
+        self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
+        self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
+        self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
+
+    def reset(self, q: np.ndarray) -> None:
+        """Restart integration from configuration ``q`` (e.g. the measured joint state)."""
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape == self.q_cbf.shape and np.isfinite(q).all():
+            self.q_cbf = np.clip(q, self.q_min, self.q_max)
+
+    def rows_at(self, q: np.ndarray) -> BarrierRows:
+        """The barrier rows at configuration ``q`` (no QP, no state change)."""
+        endpoints, jacobians = self.kinematics.compute(q)
+        return self.barrier.evaluate(endpoints, jacobians, self.params.gamma, self.params.phi)
+
+    def step(self, q_nom: np.ndarray, dt: float) -> StepResult:
+        """One control step towards ``q_nom`` (n,) over ``dt`` seconds."""
+        p = self.params
+        rows = self.rows_at(self.q_cbf)
+        u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - self.q_cbf)
+        lower = np.maximum(-p.u_max, (self.q_min - self.q_cbf) / dt)
+        upper = np.minimum(p.u_max, (self.q_max - self.q_cbf) / dt)
+        lower = np.minimum(lower, upper)
+        problem = QPProblem(w=p.weights, u_ref=u_ref, A=rows.A, b=rows.b, lower=lower, upper=upper)
+        solution = self._qp.solve(problem)
+        qp_time = solution.solve_time_s
+        u = solution.u
+        if u is not None:
+            mode = SafetyMode.ACTIVE if solution.active_rows else SafetyMode.NOMINAL
+            active = solution.active_rows
+        else:
+            relaxed = self._relaxed_qp.solve(self._relaxed(problem))
+            qp_time += relaxed.solve_time_s
+            if relaxed.u is not None:
+                u, mode = relaxed.u[: problem.n], SafetyMode.RELAXED
+                active = int(np.count_nonzero(rows.A @ u - rows.b <= 1e-6))
+            else:
+                u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
+        q_next = self.q_cbf + dt * u
+        if not np.isfinite(q_next).all():
+            u, q_next, mode = np.zeros(problem.n), self.q_cbf.copy(), SafetyMode.HOLD
+        self.q_cbf = np.clip(q_next, self.q_min, self.q_max)
+        return StepResult(
+            q_cbf=self.q_cbf.copy(), u=u, u_ref=u_ref, mode=mode, rows=rows, active_rows=active,
+            qp_time_s=qp_time, qp_status=solution.status,
+        )
+
+    def _relaxed(self, problem: QPProblem) -> QPProblem:
+        """[u; σ]: min ½‖u − u_ref‖²_W + ½ρ‖σ‖²  s.t.  A u + σ ≥ b,  σ ∈ [0, ∞)."""
+        m = problem.m
+        return QPProblem(
+            w=np.concatenate([problem.w, np.full(m, self.params.relax_penalty)]),
+            u_ref=np.concatenate([problem.u_ref, np.zeros(m)]),
+            A=np.hstack([problem.A, np.eye(m)]),
+            b=problem.b,
+            lower=np.concatenate([problem.lower, np.zeros(m)]),
+            upper=np.concatenate([problem.upper, np.full(m, _SLACK_MAX)]),
+        )

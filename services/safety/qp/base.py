@@ -1,0 +1,84 @@
+"""The CBF-QP problem, its solution type and the backend interface."""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+
+class QPStatus(str, Enum):
+    OPTIMAL = "optimal"
+    INFEASIBLE = "infeasible"
+    FAILED = "failed"  # iteration limit, numerical trouble, non-finite output
+
+
+@dataclass
+class QPProblem:
+    """min ½ (u − u_ref)ᵀ diag(w) (u − u_ref)  s.t.  A u ≥ b,  lower ≤ u ≤ upper.
+
+    Shapes: ``w``, ``u_ref``, ``lower``, ``upper`` (n,); ``A`` (m, n); ``b`` (m,).
+    """
+
+    w: np.ndarray
+    u_ref: np.ndarray
+    A: np.ndarray
+    b: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.u_ref.shape[0]
+
+    @property
+    def m(self) -> int:
+        return self.b.shape[0]
+
+    def row_violation(self, u: np.ndarray) -> float:
+        """max(0, max_i (b_i − A_i u)) together with bound violations (≥ 0; 0 means feasible)."""
+        rows = float(np.max(self.b - self.A @ u, initial=0.0))
+        bounds = float(np.max(np.concatenate([self.lower - u, u - self.upper]), initial=0.0))
+        return max(rows, bounds, 0.0)
+
+
+@dataclass
+class QPSolution:
+    """A backend's answer: ``u`` (n,) when OPTIMAL, the status, residuals and timing."""
+
+    u: np.ndarray | None
+    status: QPStatus
+    solve_time_s: float
+    iterations: int = 0
+    primal_residual: float = float("nan")  # max violation of rows and bounds by u
+    active_rows: int = 0  # rows within tolerance of equality at u
+
+
+class QPBackend(abc.ABC):
+    """Solves :class:`QPProblem` instances of a (mostly) fixed size, warm-starting from the last one."""
+
+    name: str = "abstract"
+    #: rows with A_i u − b_i below this count as active (binding)
+    active_tol: float = 1e-6
+
+    @abc.abstractmethod
+    def solve(self, problem: QPProblem) -> QPSolution:
+        """Solve ``problem``; never raises for a numerical failure (returns FAILED/INFEASIBLE)."""
+
+    def _finish(self, problem: QPProblem, u: np.ndarray | None, status: QPStatus, seconds: float, iterations: int) -> QPSolution:
+        """Common post-processing: reject non-finite output, compute residual and active rows."""
+        if u is None or not np.isfinite(u).all():
+            return QPSolution(None, QPStatus.FAILED if status is QPStatus.OPTIMAL else status, seconds, iterations)
+        if status is not QPStatus.OPTIMAL:
+            return QPSolution(None, status, seconds, iterations)
+        slack = problem.A @ u - problem.b
+        return QPSolution(
+            u=u,
+            status=status,
+            solve_time_s=seconds,
+            iterations=iterations,
+            primal_residual=problem.row_violation(u),
+            active_rows=int(np.count_nonzero(slack <= self.active_tol)),
+        )

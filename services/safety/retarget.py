@@ -1,0 +1,71 @@
+"""Joint-space retargeting θ → q_nom (paper eq. 2).
+
+q_nom = Π_[q_min, q_max]( q_home + S ⊙ (θ' − θ_home) + b ), with θ' = θ, or in mirror mode
+(robot facing the person) θ' = mirror(θ): left and right arms swapped and torso roll negated.
+Our θ convention (paper §II-A) already makes shoulder roll positive *outward* on both sides, so
+the arm roll angles keep their sign when swapped; only the torso roll, defined about a global
+lateral axis, flips. ``q_home`` is the robot pose that imitates a person standing neutral
+(θ = θ_home): arms down, elbows straight, torso upright.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.names import POSE_ANGLE_NAMES
+
+#: θ' = θ[_MIRROR_PERMUTATION] * _MIRROR_SIGN swaps arms and flips the torso roll.
+_MIRROR_PERMUTATION = np.array([0, 1, 5, 6, 7, 2, 3, 4])
+_MIRROR_SIGN = np.array([-1.0, 1, 1, 1, 1, 1, 1, 1])
+
+
+def mirror_pose(theta: np.ndarray) -> np.ndarray:
+    """The pose a mirror image of the person would have (8,): arms swapped, torso roll negated."""
+    return theta[..., _MIRROR_PERMUTATION] * _MIRROR_SIGN
+
+
+@dataclass
+class Retargeter:
+    """Affine map with joint-limit projection; invalid angles keep their last nominal joint value.
+
+    All vectors are (8,) in IMITATION_JOINT_NAMES / POSE_ANGLE_NAMES order; radians.
+    """
+
+    q_home: np.ndarray
+    q_min: np.ndarray
+    q_max: np.ndarray
+    scale: np.ndarray
+    offset: np.ndarray
+    theta_home: np.ndarray
+    mirror: bool = False
+    _last: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        for name in ("q_home", "q_min", "q_max", "scale", "offset", "theta_home"):
+            value = np.asarray(getattr(self, name), dtype=np.float64)
+            if value.shape != (len(POSE_ANGLE_NAMES),) or not np.isfinite(value).all():
+                raise ValueError(f"retargeting {name} must be 8 finite numbers, got {value}")
+            setattr(self, name, value)
+        if (self.q_min > self.q_max).any():
+            raise ValueError("retargeting joint limits have q_min > q_max")
+        self._last = np.clip(self.q_home + self.offset, self.q_min, self.q_max)
+
+    def __call__(self, theta: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """q_nom (8,) from θ (8,); where ``valid`` is False the previous q_nom entry is kept."""
+        theta = np.asarray(theta, dtype=np.float64)
+        source_valid = np.ones(theta.shape, bool) if valid is None else np.asarray(valid, bool)
+        if self.mirror:
+            theta, source_valid = mirror_pose(theta), source_valid[_MIRROR_PERMUTATION]
+        q = np.clip(self.q_home + self.scale * (theta - self.theta_home) + self.offset, self.q_min, self.q_max)
+        usable = source_valid & np.isfinite(q)
+        self._last = np.where(usable, q, self._last)
+        return self._last.copy()
+
+    def calibrate(self, theta: np.ndarray) -> None:
+        """Capture θ_home from the person's current (neutral) pose, in this mode's frame."""
+        theta = np.asarray(theta, dtype=np.float64)
+        if theta.shape != (8,) or not np.isfinite(theta).all():
+            raise ValueError("calibration needs 8 finite pose angles")
+        self.theta_home = mirror_pose(theta) if self.mirror else theta.copy()
