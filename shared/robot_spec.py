@@ -117,13 +117,6 @@ class RobotSpec(BaseModel):
         default_factory=dict,
         description="imitation joint -> (min, max) (rad), overriding (tightening) the model's range",
     )
-    neutral: list[float] = Field(
-        default_factory=lambda: [0.0] * 8,
-        min_length=8,
-        max_length=8,
-        description="imitation joint values (rad, imitation_joints order) that imitate a person "
-        "standing neutral (θ = 0: upright, arms hanging, elbows straight): q_home of paper eq. 2",
-    )
     retarget_sign: list[float] = Field(
         default_factory=lambda: [1.0] * 8,
         min_length=8,

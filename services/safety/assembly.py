@@ -36,10 +36,10 @@ def load_spec(conf: StackConfig) -> RobotSpec:
 
 
 def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinematics) -> Retargeter:
-    """Paper eq. 2 with q_home = the spec's neutral pose and S = robot sign ⊙ configured scale."""
+    """Paper eq. 2 with q_home = the robot's home pose and S = robot sign ⊙ configured scale."""
     r = conf.retargeting
     return Retargeter(
-        q_home=np.asarray(spec.neutral),
+        q_home=kinematics.q_home,
         q_min=kinematics.q_min,
         q_max=kinematics.q_max,
         scale=np.asarray(spec.retarget_sign) * np.asarray(r.scale),

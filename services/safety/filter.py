@@ -7,7 +7,9 @@
 with u_lo/u_hi the velocity bounds intersected with the joint limits reachable in one step.
 If the rows are infeasible (or the solver fails) a relaxed problem with one slack per row,
 min … + ½ ρ ‖σ‖²  s.t.  A u + σ ≥ b, σ ≥ 0, is solved instead; if that fails too the filter
-holds (u* = 0). The mode says which happened; the output is always finite.
+holds (u* = 0). The mode says which happened; the output is always finite. A state that is
+already inside a barrier (h < −1 mm: the person moved into the robot faster than it could
+retreat) is reported as RELAXED too: the constraints are not being honoured there.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from shared.messages import SafetyMode
 
 #: upper bound of a slack variable (m/s of barrier rate): effectively unbounded
 _SLACK_MAX = 1e6
+#: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
+VIOLATION_TOL = 1e-3
 
 
 @dataclass
@@ -100,6 +104,8 @@ class SafetyFilter:
         u = solution.u
         if u is not None:
             mode = SafetyMode.ACTIVE if solution.active_rows else SafetyMode.NOMINAL
+            if np.any(rows.h[rows.enabled] < -VIOLATION_TOL):
+                mode = SafetyMode.RELAXED
             active = solution.active_rows
         else:
             relaxed = self._relaxed_qp.solve(self._relaxed(problem))

@@ -4,8 +4,8 @@ q_nom = Π_[q_min, q_max]( q_home + S ⊙ (θ' − θ_home) + b ), with θ' = θ
 (robot facing the person) θ' = mirror(θ): left and right arms swapped and torso roll negated.
 Our θ convention (paper §II-A) already makes shoulder roll positive *outward* on both sides, so
 the arm roll angles keep their sign when swapped; only the torso roll, defined about a global
-lateral axis, flips. ``q_home`` is the robot pose that imitates a person standing neutral
-(θ = θ_home): arms down, elbows straight, torso upright.
+lateral axis, flips. ``q_home`` is the robot's home pose (arms hanging a little away from the
+body, clear of every self pair); a person standing neutral (θ = θ_home) maps onto it.
 """
 
 from __future__ import annotations

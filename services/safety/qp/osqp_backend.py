@@ -60,7 +60,7 @@ class OsqpBackend(QPBackend):
             q, lower, upper = self._vectors(problem)
             self._solver.update(q=q, l=lower, u=upper, Ax=self._stacked(problem).ravel()[self._index], Px=problem.w.copy())
         assert self._solver is not None
-        result = self._solver.solve()
+        result = self._solver.solve(raise_error=False)
         seconds = time.perf_counter() - start
         status_val = result.info.status_val
         if status_val in _SOLVED:

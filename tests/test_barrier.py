@@ -1,0 +1,126 @@
+"""CBF rows (paper eqs. 4–7) against central finite differences on the shipped G1 model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.safety.assembly import build_pipeline
+from services.safety.barrier import DISABLED_B, CapsuleBarrier
+from services.safety.pairs import N_ROBOT, make_pair_set, preset_pair_set
+from shared.config import load_config
+
+
+@pytest.fixture(scope="module")
+def pipeline():
+    return build_pipeline(load_config(environ={}), pair_preset="paper72")
+
+
+def random_q(kin, rng) -> np.ndarray:
+    return rng.uniform(kin.q_min, kin.q_max)
+
+
+def random_humans(rng, n_people: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Capsules scattered around the robot's upper body (0.2–0.8 m away)."""
+    centre = np.array([0.0, 0.0, 1.0]) + rng.uniform([-0.8, -0.8, -0.4], [0.8, 0.8, 0.5], size=(7 * n_people, 1, 3))
+    endpoints = centre + rng.normal(scale=0.15, size=(7 * n_people, 2, 3))
+    return endpoints, rng.uniform(0.03, 0.12, 7 * n_people)
+
+
+def h_of(pipeline, q: np.ndarray) -> np.ndarray:
+    return pipeline.filter.rows_at(q).h
+
+
+def test_rows_match_central_finite_differences(pipeline) -> None:
+    rng = np.random.default_rng(3)
+    kin = pipeline.kinematics
+    eps = 1e-6
+    checked = 0
+    for _ in range(150):
+        pipeline.barrier.set_external(*random_humans(rng))
+        q = random_q(kin, rng)
+        rows = pipeline.filter.rows_at(q)
+        fd = np.empty_like(rows.A)
+        for k in range(len(q)):
+            dq = np.zeros_like(q)
+            dq[k] = eps
+            fd[:, k] = (h_of(pipeline, q + dq) - h_of(pipeline, q - dq)) / (2 * eps)
+        ok = rows.distance > 1e-3
+        scale = np.maximum(np.linalg.norm(fd, axis=1), 1e-3)
+        rel = np.linalg.norm(rows.A - fd, axis=1) / scale
+        assert np.isfinite(rows.A).all() and np.isfinite(rows.b).all()
+        assert rel[ok].max() <= 1e-5, f"worst pair {pipeline.pairs.names[int(np.argmax(np.where(ok, rel, 0)))]}"
+        checked += int(ok.sum())
+    assert checked > 150 * 60
+
+
+def test_human_rows_have_zero_jacobian_for_human_and_velocity_term(pipeline) -> None:
+    """b = −γ h + nᵀ v_pB equals −γ h − ∂h/∂t when the human capsule moves with velocity v."""
+    rng = np.random.default_rng(5)
+    kin = pipeline.kinematics
+    q = kin.q_home.copy()
+    endpoints, radii = random_humans(rng)
+    velocity = rng.normal(size=endpoints.shape)
+    barrier = pipeline.barrier
+    barrier.set_external(endpoints, radii, velocities=velocity)
+    rows = pipeline.filter.rows_at(q)
+    dt = 1e-6
+    barrier.set_external(endpoints + dt * velocity, radii, velocities=velocity)
+    h_plus = pipeline.filter.rows_at(q).h
+    barrier.set_external(endpoints - dt * velocity, radii, velocities=velocity)
+    h_minus = pipeline.filter.rows_at(q).h
+    dh_dt = (h_plus - h_minus) / (2 * dt)
+    human = ~rows.is_self & (rows.distance > 1e-3)
+    gamma = pipeline.filter.params.gamma
+    np.testing.assert_allclose(rows.b[human], -gamma * rows.h[human] - dh_dt[human], atol=1e-6)
+    np.testing.assert_allclose(rows.b[rows.is_self], -gamma * rows.h[rows.is_self], atol=1e-12)
+
+
+def test_degenerate_geometry_gives_finite_rows(pipeline) -> None:
+    """Human capsules through the robot's capsule axes (d = 0), parallel to them, or zero-length."""
+    kin = pipeline.kinematics
+    q = kin.q_home.copy()
+    robot_endpoints, _ = kin.compute(q)
+    humans = np.concatenate([robot_endpoints, robot_endpoints[:, ::-1] + [0.1, 0.0, 0.0]])  # coincident and parallel
+    humans[3] = robot_endpoints[3, :1].repeat(2, axis=0)  # zero-length at a robot endpoint
+    pipeline.barrier.set_external(humans, np.full(14, 0.05))
+    rows = pipeline.filter.rows_at(q)
+    assert np.isfinite(rows.A).all() and np.isfinite(rows.b).all() and np.isfinite(rows.h).all()
+    touching = rows.distance < 1e-9
+    assert touching.any()
+    assert (np.linalg.norm(rows.A[touching], axis=1) > 0).any()  # a usable push-apart direction
+
+
+def test_missing_human_capsules_disable_their_rows(pipeline) -> None:
+    rng = np.random.default_rng(9)
+    endpoints, radii = random_humans(rng)
+    valid = np.ones(14, bool)
+    valid[2] = False
+    pipeline.barrier.set_external(endpoints, radii, valid)
+    rows = pipeline.filter.rows_at(pipeline.kinematics.q_home)
+    disabled = pipeline.pairs.second == N_ROBOT + 2
+    assert disabled.sum() == 7
+    assert (rows.A[disabled] == 0).all() and (rows.b[disabled] == DISABLED_B).all() and np.isnan(rows.h[disabled]).all()
+    assert rows.enabled.sum() == len(pipeline.pairs) - 7
+    pipeline.barrier.set_external(None)
+    rows = pipeline.filter.rows_at(pipeline.kinematics.q_home)
+    assert rows.min_h(self_rows=False) is None and rows.min_h(self_rows=True) is not None
+
+
+def test_pair_presets() -> None:
+    spec_pairs = [("left_forearm", "torso"), ("right_forearm", "torso")]
+    default = preset_pair_set("default", spec_pairs)
+    assert len(default) == 2 + 49 and default.is_self.sum() == 2
+    assert len(preset_pair_set("paper72", spec_pairs)) == 72
+    with pytest.raises(ValueError, match="unknown pair preset"):
+        preset_pair_set("nope", spec_pairs)
+    with pytest.raises(ValueError, match="two different robot capsules"):
+        make_pair_set([("torso", "torso")])
+
+
+def test_default_pipeline_is_clear_at_home() -> None:
+    pipeline = build_pipeline(load_config(environ={}))
+    rows = pipeline.filter.rows_at(pipeline.kinematics.q_home)
+    assert len(pipeline.pairs) == len(pipeline.spec.self_pairs) + 49
+    assert rows.min_h(self_rows=True) > 0
+    assert isinstance(pipeline.barrier, CapsuleBarrier)
