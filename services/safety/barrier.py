@@ -50,12 +50,17 @@ class CapsuleBarrier:
         self.n_joints = n_joints
         n_stack = N_ROBOT + pairs.n_external
         self._endpoints = np.zeros((n_stack, 2, 3))
-        self._jacobians = np.zeros((n_stack, 2, 3, n_joints))  # external rows stay zero
         self._velocities = np.zeros((n_stack, 2, 3))  # robot rows stay zero (their motion is in J u)
         self._radii = np.zeros(n_stack)
         self._valid = np.ones(n_stack, bool)
         self._radii[:N_ROBOT] = self.robot_radii
         self._is_self = pairs.is_self
+        # index arrays scattering closest-point weights onto the robot endpoints (capsule c, end e → 2c + e)
+        self._rows = np.arange(len(pairs))
+        self._self_rows = np.flatnonzero(self._is_self)
+        self._a0, self._a1 = 2 * pairs.first, 2 * pairs.first + 1
+        self._b0, self._b1 = 2 * pairs.second[self._self_rows], 2 * pairs.second[self._self_rows] + 1
+        self._point_weights = np.zeros((len(pairs), 2 * N_ROBOT))
 
     def set_external(
         self,
@@ -78,16 +83,18 @@ class CapsuleBarrier:
         """Rows at the robot configuration whose FK gave ``robot_endpoints`` (7,2,3) and
         ``robot_jacobians`` (7,2,3,n)."""
         self._endpoints[:N_ROBOT] = robot_endpoints
-        self._jacobians[:N_ROBOT] = robot_jacobians
         i, j = self.pairs.first, self.pairs.second
         ea, eb = self._endpoints[i], self._endpoints[j]
         closest = segment_closest_points(ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1])
         normal = safe_normal(closest.p, closest.q, (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
-        s = closest.s[:, None, None]
-        t = closest.t[:, None, None]
-        ja, jb = self._jacobians[i], self._jacobians[j]
-        jp = (1.0 - s) * ja[:, 0] + s * ja[:, 1] - ((1.0 - t) * jb[:, 0] + t * jb[:, 1])  # (m,3,n)
-        A = np.einsum("mk,mkn->mn", normal, jp)
+        # J_pA − J_pB as one weighted sum over the 14 robot endpoint Jacobians: (m, 14) @ (14, 3n)
+        weights = self._point_weights
+        weights[self._rows, self._a0] = 1.0 - closest.s
+        weights[self._rows, self._a1] = closest.s
+        weights[self._self_rows, self._b0] = closest.t[self._self_rows] - 1.0
+        weights[self._self_rows, self._b1] = -closest.t[self._self_rows]
+        jp = (weights @ robot_jacobians.reshape(2 * N_ROBOT, -1)).reshape(-1, 3, self.n_joints)
+        A = np.matmul(normal[:, None, :], jp)[:, 0, :]
         h = closest.distance - (self._radii[i] + self._radii[j] + phi)
         vb = self._velocities[j]
         v_pb = (1.0 - closest.t)[:, None] * vb[:, 0] + closest.t[:, None] * vb[:, 1]

@@ -37,11 +37,9 @@ class QPProblem:
     def m(self) -> int:
         return self.b.shape[0]
 
-    def row_violation(self, u: np.ndarray) -> float:
-        """max(0, max_i (b_i − A_i u)) together with bound violations (≥ 0; 0 means feasible)."""
-        rows = float(np.max(self.b - self.A @ u, initial=0.0))
-        bounds = float(np.max(np.concatenate([self.lower - u, u - self.upper]), initial=0.0))
-        return max(rows, bounds, 0.0)
+    def violation(self, u: np.ndarray, slack: np.ndarray) -> float:
+        """Largest violation of rows (``slack`` = A u − b) and bounds by ``u`` (≥ 0; 0: feasible)."""
+        return max(0.0, -float(slack.min(initial=0.0)), float((self.lower - u).max()), float((u - self.upper).max()))
 
 
 @dataclass
@@ -79,6 +77,6 @@ class QPBackend(abc.ABC):
             status=status,
             solve_time_s=seconds,
             iterations=iterations,
-            primal_residual=problem.row_violation(u),
+            primal_residual=problem.violation(u, slack),
             active_rows=int(np.count_nonzero(slack <= self.active_tol)),
         )

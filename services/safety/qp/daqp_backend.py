@@ -24,15 +24,33 @@ class DaqpBackend(QPBackend):
     def __init__(self, iter_limit: int = 1000, primal_tol: float = 1e-9) -> None:
         self._settings = {"iter_limit": iter_limit, "primal_tol": primal_tol}
         self._sense: np.ndarray | None = None
+        self._w: np.ndarray | None = None
+        self._H = np.empty((0, 0))
+        self._upper = np.empty(0)
+        self._lower = np.empty(0)
+
+    def _buffers(self, problem: QPProblem) -> None:
+        """(Re)build H and the bound vectors only when the weights or the sizes change."""
+        n, m = problem.n, problem.m
+        if self._w is None or self._w.shape != problem.w.shape or not np.array_equal(self._w, problem.w):
+            self._w = problem.w.copy()
+            self._H = np.diag(self._w)
+        if self._upper.shape[0] != n + m:
+            self._upper = np.full(n + m, _INF)
+            self._lower = np.empty(n + m)
+            self._sense = np.zeros(n + m, dtype=np.int32)
 
     def solve(self, problem: QPProblem) -> QPSolution:
-        n, m = problem.n, problem.m
-        H = np.diag(problem.w)
+        n = problem.n
+        self._buffers(problem)
+        H = self._H
         f = -problem.w * problem.u_ref
-        upper = np.concatenate([problem.upper, np.full(m, _INF)])
-        lower = np.concatenate([problem.lower, problem.b])
-        if self._sense is None or self._sense.shape[0] != n + m:
-            self._sense = np.zeros(n + m, dtype=np.int32)
+        upper, lower = self._upper, self._lower
+        upper[:n] = problem.upper
+        lower[:n] = problem.lower
+        lower[n:] = problem.b
+        if self._sense is None:
+            self._sense = np.zeros(upper.shape[0], dtype=np.int32)
         start = time.perf_counter()
         x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._sense, **self._settings)
         seconds = time.perf_counter() - start

@@ -1,0 +1,441 @@
+"""``safemimic safety``: the CBF safety service at a fixed control rate (DESIGN §1, §4, §5, §8).
+
+Every tick (default 500 Hz, ``safety.rate_hz``):
+
+1. apply a pending :class:`~shared.messages.ConfigUpdate` (validated in the subscriber, structural
+   changes — robot, pair preset, QP backend — built off the control thread, swapped in here);
+2. the newest :class:`~shared.messages.JointState`: the first one resets q_cbf to the measured q;
+   a later one more than :data:`RESYNC_TOLERANCE` rad away on any joint (robot pushed, restarted)
+   resets it again and is counted;
+3. the newest :class:`~shared.messages.HumanState` (zero-order hold): its capsules become the
+   barrier's external capsules and θ is retargeted to q_nom. No human yet: no external capsules,
+   q_nom = q_cbf (hold). A human state older than ``safety.human_timeout_s`` (local receive time)
+   keeps its capsules — the person may still be there — without their velocity term, holds q_nom
+   and marks the status ``human_stale``;
+4. one CBF-QP step with Δt = the nominal period; the command (q_cbf, u*) is checked finite and
+   published on ``robot/command`` (a non-finite one is replaced by the last command, counted);
+5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`.
+
+Scheduling is absolute (tick k is due at start + k·Δt) and the thread sleeps on a
+``threading.Event`` between ticks — never a busy loop, which would hold the GIL and delay the
+Zenoh callbacks (DESIGN §8). A tick that completes after the next tick's due time is a deadline
+miss; tick slots skipped entirely after a long stall are misses too and the schedule moves on
+(keeping its phase) instead of bursting to catch up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from services.safety.assembly import SafetyPipeline, build_pipeline, make_retargeter
+from services.safety.filter import FilterParams, StepResult
+from shared.bus import Bus, Latest, Received
+from shared.cli_args import add_bus_arguments, config_from_args
+from shared.config import ConfigError, StackConfig, validate_config
+from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
+
+log = logging.getLogger("safemimic.safety")
+
+SERVICE_NAME = "safety"
+#: |q_measured − q_cbf| (rad) on any joint above which q_cbf is re-synchronised to the robot.
+RESYNC_TOLERANCE = 0.3
+#: The frame HumanState capsules must be expressed in (the robot frame, z up, floor at 0).
+HUMAN_FRAME = "robot"
+#: GIL switch interval of the service process (s): bounds how long the control thread waits for
+#: a Zenoh callback thread holding the GIL (CPython's default is 5 ms, 2.5 periods at 500 Hz).
+SWITCH_INTERVAL_S = 0.0005
+#: Step times kept for the exit summary's percentiles (a ring buffer: 20 s at 500 Hz).
+_STEP_TIME_WINDOW = 10_000
+#: Unexpected exceptions in consecutive ticks after which the service gives up (a bug, not noise).
+_MAX_CONSECUTIVE_ERRORS = 100
+
+
+def _pipeline_key(conf: StackConfig) -> tuple[Any, ...]:
+    """The settings that need a new pipeline (kinematics, pair set, QP backend) when they change."""
+    return (conf.robot.spec, conf.robot.model, conf.safety.pairs, conf.safety.backend)
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
+
+
+@dataclass
+class _PendingConfig:
+    """An accepted configuration waiting for the next tick (pipeline: a rebuilt one, or None)."""
+
+    version: int
+    conf: StackConfig
+    pipeline: SafetyPipeline | None
+
+
+class SafetyService:
+    """The safety service's state and one control tick; :meth:`run` drives it at the fixed rate.
+
+    ``bus`` defaults to a new :class:`~shared.bus.Bus` from ``conf.bus`` (closed by :meth:`close`).
+    The public counters (``ticks``, ``deadline_misses``, ``resyncs``, ``nonfinite_holds``,
+    ``config_version``) and :meth:`counters` describe what happened so far.
+    """
+
+    def __init__(self, conf: StackConfig, bus: Bus | None = None) -> None:
+        self.conf = conf
+        self.pipeline = build_pipeline(conf)
+        self._owns_bus = bus is None
+        self.bus = bus if bus is not None else Bus(conf.bus, conf.robot_id, SERVICE_NAME)
+        try:
+            self._command_pub = self.bus.publisher("robot/command")
+            self._status_pub = self.bus.publisher("safety/status")
+            self._rejected: Counter[str] = Counter()  # valid messages we refused (config, frame, output)
+            self._human: Latest[HumanState] = Latest()
+            self.bus.subscribe("human/state", self._on_human)
+            self._joint_state: Latest[JointState] = self.bus.latest("robot/joint_state")  # type: ignore[assignment]
+            self._config_lock = threading.Lock()
+            self._pending: _PendingConfig | None = None
+            self.bus.subscribe("config", self._on_config)
+            self.bus.declare_alive(SERVICE_NAME)
+        except Exception:
+            self.close()
+            raise
+
+        # control state
+        self.ticks = 0
+        self.deadline_misses = 0
+        self.resyncs = 0
+        self.nonfinite_holds = 0
+        self.config_version = 0
+        self.tick_errors = 0
+        self.modes: Counter[str] = Counter()
+        self.max_late_s = 0.0
+        self._step_times = np.zeros(_STEP_TIME_WINDOW)
+        self._q_nom = self.pipeline.filter.q_cbf.copy()
+        self._last_q = self.pipeline.filter.q_cbf.copy()  # last published command
+        self._human_used: Received[HumanState] | None = None  # the human state the barrier holds
+        self._human_stale = False
+        self._human_dirty = True  # re-apply the human state (new message, config change)
+        self._joint_state_seen: Received[JointState] | None = None
+        self._synced = False
+        self._last_result: StepResult | None = None
+        self._last_step_s = 0.0
+        self._next_status = -math.inf
+
+    # lifecycle -----------------------------------------------------------------------------
+    def __enter__(self) -> SafetyService:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._owns_bus:
+            self.bus.close()
+
+    @property
+    def period(self) -> float:
+        """The nominal control period Δt (s)."""
+        return 1.0 / self.conf.safety.rate_hz
+
+    # subscriber callbacks (Zenoh threads) ---------------------------------------------------
+    def _on_human(self, message: HumanState) -> None:
+        if message.frame_id != HUMAN_FRAME:  # capsules in an unknown frame must not reach the QP
+            self._rejected["human/state"] += 1
+            log.warning("dropped a HumanState in frame %r (expected %r)", message.frame_id, HUMAN_FRAME)
+            return
+        self._human.set(message)
+
+    def _on_config(self, update: ConfigUpdate) -> None:
+        """Validate an update; build a new pipeline here if the structure changed; queue it."""
+        try:
+            new = validate_config(update.config, origin=f"config update v{update.version}")
+        except ConfigError as exc:
+            self._rejected["config"] += 1
+            log.warning("rejected config update v%d: %s", update.version, exc)
+            return
+        # The session and the key expressions are fixed for this process's life.
+        if new.bus != self.conf.bus or new.robot_id != self.conf.robot_id:
+            new = new.model_copy(update={"bus": self.conf.bus, "robot_id": self.conf.robot_id})
+        with self._config_lock:
+            reference = self._pending.conf if self._pending else self.conf
+            pipeline = self._pending.pipeline if self._pending else None
+        if _pipeline_key(new) != _pipeline_key(reference):
+            try:
+                pipeline = build_pipeline(new)
+            except Exception as exc:  # a model that does not load, an unknown preset, ...
+                self._rejected["config"] += 1
+                log.warning("rejected config update v%d: cannot build the safety pipeline: %s", update.version, exc)
+                return
+        with self._config_lock:
+            self._pending = _PendingConfig(update.version, new, pipeline)
+
+    # control tick (the loop's thread) -------------------------------------------------------
+    def tick(self, now: float | None = None) -> StepResult:
+        """One control step at monotonic time ``now``: inputs → CBF-QP → command (+ status when due)."""
+        started = time.perf_counter()
+        now = time.monotonic() if now is None else now
+        self._apply_pending_config()
+        self._sync_joint_state()
+        human = self._update_human(now)
+        pipeline = self.pipeline
+        q_nom = self._q_nom if human is not None else pipeline.filter.q_cbf.copy()
+        result = pipeline.filter.step(q_nom, self.period)
+
+        q, u, mode = result.q_cbf, result.u, result.mode
+        if not (np.isfinite(q).all() and np.isfinite(u).all()):  # the filter promises this never happens
+            self.nonfinite_holds += 1
+            self._rejected["robot/command"] += 1
+            q, u, mode = self._last_q.copy(), np.zeros_like(self._last_q), SafetyMode.HOLD
+            pipeline.filter.reset(q)
+        message = human.message if human is not None else None
+        self._command_pub.put(
+            JointCommand(
+                stamp=now, q=q, dq=u, mode=mode,
+                human_stamp=message.stamp if message is not None else None,
+                human_seq=message.seq if message is not None else None,
+            )
+        )
+        self._last_q = q.copy()
+        self._last_result = result
+        self.modes[mode.value] += 1
+        self._last_step_s = time.perf_counter() - started
+        self._step_times[self.ticks % _STEP_TIME_WINDOW] = self._last_step_s
+        self.ticks += 1
+        if now >= self._next_status:
+            self._publish_status(now, result, mode)
+            status_period = 1.0 / self.conf.safety.status_rate_hz
+            self._next_status = max(self._next_status + status_period, now + 0.5 * status_period)
+        return result
+
+    def _apply_pending_config(self) -> None:
+        with self._config_lock:
+            pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        old, new = self.conf, pending.conf
+        if pending.pipeline is not None and pending.pipeline is not self.pipeline:
+            q_cbf = self.pipeline.filter.q_cbf
+            self.pipeline = pending.pipeline
+            self.pipeline.filter.reset(q_cbf)
+        else:
+            self.pipeline.filter.params = FilterParams.from_config(new.safety)
+            if new.retargeting != old.retargeting:
+                self.pipeline.retargeter = make_retargeter(new, self.pipeline.spec, self.pipeline.kinematics)
+        # Angles a new retargeter has not seen valid yet keep the current nominal value.
+        retargeter = self.pipeline.retargeter
+        if retargeter is not getattr(self, "_seeded_retargeter", None):
+            retargeter._last = np.clip(self._q_nom, retargeter.q_min, retargeter.q_max)
+            self._seeded_retargeter = retargeter
+        self.conf = new
+        self.config_version = pending.version
+        self._human_dirty = True
+        self._next_status = -math.inf  # report the applied version right away
+        log.info("applied config v%d (rate %.0f Hz, backend %s, pairs %s)", pending.version,
+                 new.safety.rate_hz, new.safety.backend.value, new.safety.pairs)
+
+    def _sync_joint_state(self) -> None:
+        received = self._joint_state.get()
+        if received is None or received is self._joint_state_seen:
+            return
+        self._joint_state_seen = received
+        q_measured = received.message.q
+        filt = self.pipeline.filter
+        if not self._synced:
+            filt.reset(q_measured)
+            self._synced = True
+            log.info("q_cbf synchronised to the first measured joint state")
+        elif np.max(np.abs(q_measured - filt.q_cbf)) > RESYNC_TOLERANCE:
+            deviation = float(np.max(np.abs(q_measured - filt.q_cbf)))
+            filt.reset(q_measured)
+            self.resyncs += 1
+            log.warning("measured q is %.2f rad from q_cbf: re-synchronised (%d so far)", deviation, self.resyncs)
+        else:
+            return
+        if self._human_used is None:
+            self._q_nom = filt.q_cbf.copy()
+
+    def _update_human(self, now: float) -> Received[HumanState] | None:
+        """Put the newest human state into the barrier and q_nom; None while there never was one."""
+        received = self._human.get()
+        if received is None:
+            if self._human_dirty:
+                self.pipeline.barrier.set_external(None)
+                self._human_dirty = False
+            return None
+        stale = now - received.received > self.conf.safety.human_timeout_s
+        if received is self._human_used and stale == self._human_stale and not self._human_dirty:
+            return received
+        message = received.message
+        use_velocity = self.conf.safety.human_velocity_term and not stale
+        self.pipeline.barrier.set_external(
+            message.capsules, message.capsule_radii, message.capsule_valid,
+            message.capsule_velocities if use_velocity else None,
+        )
+        if not stale:  # stale: hold q_nom where it was
+            self._q_nom = self.pipeline.retargeter(message.theta, message.theta_valid)
+        if stale and not self._human_stale:
+            log.warning("human state is %.2f s old: holding the last capsules and q_nom", now - received.received)
+        self._human_used, self._human_stale, self._human_dirty = received, stale, False
+        return received
+
+    def _publish_status(self, now: float, result: StepResult, mode: SafetyMode) -> None:
+        rows = result.rows
+        self._status_pub.put(
+            SafetyStatus(
+                stamp=now,
+                mode=mode,
+                min_h_self=_finite_or_none(rows.min_h(True)),
+                min_h_human=_finite_or_none(rows.min_h(False)),
+                active_constraints=int(result.active_rows),
+                total_constraints=int(np.count_nonzero(rows.enabled)),
+                qp_solve_time_ms=max(0.0, result.qp_time_s * 1e3) if math.isfinite(result.qp_time_s) else 0.0,
+                step_time_ms=self._last_step_s * 1e3,
+                deadline_misses=self.deadline_misses,
+                human_stale=self._human_stale,
+                dropped=self.dropped(),
+                config_version=self.config_version,
+                backend=self.pipeline.filter.backend_name,
+            )
+        )
+
+    def dropped(self) -> dict[str, int]:
+        """Invalid or refused messages per topic: undecodable, failing callbacks, rejected."""
+        total = Counter(self.bus.dropped)
+        total.update(self.bus.callback_errors)
+        total.update(self._rejected)
+        return {topic: int(count) for topic, count in total.items() if count}
+
+    # the loop --------------------------------------------------------------------------------
+    def run(self, stop: threading.Event, duration: float | None = None) -> dict[str, Any]:
+        """Tick at ``safety.rate_hz`` until ``stop`` is set (or ``duration`` s passed); final counters."""
+        p = self.pipeline
+        log.info(
+            "safety service started: %.0f Hz, backend %s, pairs %s (%d rows), robot %s (%s), robot_id %s, bus %s",
+            self.conf.safety.rate_hz, p.filter.backend_name, self.conf.safety.pairs, len(p.pairs), p.spec.name,
+            self.conf.robot.spec, self.conf.robot_id, self.conf.bus.mode.value,
+        )
+        gc.collect()
+        gc.freeze()  # long-lived objects leave the collector: shorter gen-2 pauses in the loop
+        period = self.period
+        begin = anchor = time.monotonic()
+        end = math.inf if duration is None else begin + duration
+        k = 0
+        consecutive_errors = 0
+        while not stop.is_set():
+            due = anchor + k * period
+            now = time.monotonic()
+            if now < due:
+                if stop.wait(min(due, end) - now):
+                    break
+                now = time.monotonic()
+            if now >= end:
+                break
+            late = now - due
+            self.max_late_s = max(self.max_late_s, late)
+            if late >= period:  # whole slots passed without a command: count them, keep the phase
+                skipped = int(late // period)
+                self.deadline_misses += skipped
+                k += skipped
+                due += skipped * period
+            try:
+                self.tick(now)
+                consecutive_errors = 0
+            except Exception:
+                self.tick_errors += 1
+                consecutive_errors += 1
+                if consecutive_errors == 1 or self.tick_errors <= 10:
+                    log.exception("safety tick failed (%d so far)", self.tick_errors)
+                if consecutive_errors >= _MAX_CONSECUTIVE_ERRORS:
+                    raise
+            if time.monotonic() > due + period:
+                self.deadline_misses += 1
+            k += 1
+            if self.period != period:  # a config update changed the rate: restart the schedule
+                period, anchor, k = self.period, time.monotonic(), 1
+        counters = self.counters(time.monotonic() - begin)
+        log.info("safety service stopped after %d ticks", self.ticks)
+        return counters
+
+    def counters(self, elapsed_s: float | None = None) -> dict[str, Any]:
+        """Final (or current) counters: ticks, deadline misses, step times, resyncs, drops, ..."""
+        n = min(self.ticks, _STEP_TIME_WINDOW)
+        steps = self._step_times[:n] * 1e3 if n else np.zeros(1)
+        slots = self.ticks + self.deadline_misses
+        out: dict[str, Any] = {
+            "ticks": self.ticks,
+            "deadline_misses": self.deadline_misses,
+            "miss_ratio": self.deadline_misses / slots if slots else 0.0,
+            "rate_hz": self.conf.safety.rate_hz,
+            "step_p50_ms": float(np.percentile(steps, 50)),
+            "step_p99_ms": float(np.percentile(steps, 99)),
+            "step_max_ms": float(steps.max()),
+            "max_late_ms": self.max_late_s * 1e3,
+            "resyncs": self.resyncs,
+            "nonfinite_holds": self.nonfinite_holds,
+            "tick_errors": self.tick_errors,
+            "config_version": self.config_version,
+            "modes": dict(self.modes),
+            "dropped": self.dropped(),
+            "backend": self.pipeline.filter.backend_name,
+        }
+        if elapsed_s is not None:
+            out["elapsed_s"] = elapsed_s
+            out["achieved_hz"] = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
+        return out
+
+
+def main(conf: StackConfig, stop: threading.Event, duration: float | None = None) -> dict[str, Any]:
+    """Run the safety service until ``stop`` is set or ``duration`` seconds passed; final counters."""
+    with SafetyService(conf) as service:
+        return service.run(stop, duration)
+
+
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    parser = parser or argparse.ArgumentParser(prog="safemimic safety")
+    parser.description = (
+        "Run the CBF safety service: newest HumanState → retargeting → capsule CBF-QP → JointCommand "
+        "at a fixed rate (safety.rate_hz), SafetyStatus at safety.status_rate_hz; ConfigUpdates apply "
+        "at the next step."
+    )
+    add_bus_arguments(parser)
+    parser.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this many seconds (tests, demos)")
+    parser.add_argument("--rate", type=float, metavar="HZ", help="control rate, overriding safety.rate_hz")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    extra: dict[str, Any] = {"safety": {"rate_hz": args.rate}} if args.rate is not None else {}
+    try:
+        conf = config_from_args(args, extra)
+    except ConfigError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    if args.duration is not None and args.duration <= 0:
+        print("--duration must be > 0", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    c = main(conf, stop, args.duration)
+    print(
+        f"safety: {c['ticks']} ticks in {c['elapsed_s']:.2f} s ({c['achieved_hz']:.1f} Hz of {c['rate_hz']:.0f}), "
+        f"{c['deadline_misses']} deadline misses ({100 * c['miss_ratio']:.2f} %), "
+        f"step p50 {c['step_p50_ms']:.3f} ms p99 {c['step_p99_ms']:.3f} ms max {c['step_max_ms']:.2f} ms, "
+        f"resyncs {c['resyncs']}, dropped {c['dropped']}",
+        flush=True,
+    )
+    return 0
+
+
+def cli(argv: list[str] | None = None) -> None:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    sys.exit(run(build_parser().parse_args(argv)))
