@@ -58,17 +58,35 @@ class InvalidMessage(CodecError):
     """Well-formed, known schema, but the content fails validation (shape, NaN, range, ...)."""
 
 
+@functools.lru_cache(maxsize=256)
+def _array_header(dtype: np.dtype, shape: tuple[int, ...]) -> tuple[bytes, np.dtype]:
+    """Wire header ``[dtype code u8][ndim u8][shape u32 × ndim]`` and the little-endian dtype."""
+    wire_dtype = dtype.newbyteorder("<") if dtype.byteorder == ">" else dtype
+    code = _DTYPE_CODE.get(wire_dtype)
+    if code is None or len(shape) > _MAX_ARRAY_DIMS:
+        raise TypeError(f"cannot encode array of dtype {dtype} and {len(shape)} dims")
+    return _HEADER.pack(code, len(shape)) + _DIMS[len(shape)].pack(*shape), _DTYPES[code]
+
+
 def _default(obj: Any) -> Any:
-    """msgpack hook: ndarray → ExtType(ND_EXT, [dtype code u8][ndim u8][shape u32 × ndim][raw C-order bytes])."""
+    """msgpack hook: ndarray → ExtType(ND_EXT, header + raw little-endian C-order bytes)."""
     if isinstance(obj, np.ndarray):
-        code = _DTYPE_CODE.get(obj.dtype.newbyteorder("<") if obj.dtype.byteorder == ">" else obj.dtype)
-        if code is None or obj.ndim > _MAX_ARRAY_DIMS:
-            raise TypeError(f"cannot encode array of dtype {obj.dtype} and {obj.ndim} dims")
-        raw = np.ascontiguousarray(obj, dtype=_DTYPES[code]).tobytes()
-        return msgpack.ExtType(ND_EXT, _HEADER.pack(code, obj.ndim) + _DIMS[obj.ndim].pack(*obj.shape) + raw)
+        header, wire_dtype = _array_header(obj.dtype, obj.shape)
+        return msgpack.ExtType(ND_EXT, header + np.ascontiguousarray(obj, dtype=wire_dtype).tobytes())
     if isinstance(obj, np.generic):
         return obj.item()
     raise TypeError(f"cannot encode {type(obj).__name__}")
+
+
+@functools.lru_cache(maxsize=256)
+def _parse_header(header: bytes) -> tuple[np.dtype, tuple[int, ...], int]:
+    """(dtype, shape, payload byte count) of a wire header; :class:`MalformedPayload` if invalid."""
+    dtype_code, ndim = _HEADER.unpack_from(header)
+    if dtype_code >= len(_DTYPES) or ndim > _MAX_ARRAY_DIMS or len(header) != _HEADER.size + _DIMS[ndim].size:
+        raise MalformedPayload(f"array dtype code {dtype_code} or ndim {ndim} not allowed")
+    shape = _DIMS[ndim].unpack_from(header, _HEADER.size)
+    dtype = _DTYPES[dtype_code]
+    return dtype, shape, dtype.itemsize * math.prod(shape)
 
 
 def _ext_hook(code: int, data: bytes) -> Any:
@@ -77,15 +95,11 @@ def _ext_hook(code: int, data: bytes) -> Any:
         raise MalformedPayload(f"unknown msgpack extension type {code}")
     if len(data) < _HEADER.size:
         raise MalformedPayload("array header truncated")
-    dtype_code, ndim = _HEADER.unpack_from(data)
-    if dtype_code >= len(_DTYPES) or ndim > _MAX_ARRAY_DIMS:
-        raise MalformedPayload(f"array dtype code {dtype_code} or ndim {ndim} not allowed")
-    offset = _HEADER.size + _DIMS[ndim].size
+    offset = _HEADER.size + 4 * data[1]
     if len(data) < offset:
         raise MalformedPayload("array shape truncated")
-    shape = _DIMS[ndim].unpack_from(data, _HEADER.size)
-    dtype = _DTYPES[dtype_code]
-    if len(data) - offset != dtype.itemsize * math.prod(shape):
+    dtype, shape, nbytes = _parse_header(data[:offset])
+    if len(data) - offset != nbytes:
         raise MalformedPayload("array byte count does not match dtype and shape")
     return np.frombuffer(data, dtype=dtype, offset=offset).reshape(shape)
 

@@ -33,17 +33,22 @@ N_JOINTS = len(IMITATION_JOINT_NAMES)
 
 def _array_validator(shape: tuple[int, ...], dtype: type) -> BeforeValidator:
     """Coerce to a C-contiguous ``dtype`` array of exactly ``shape``; floats must be finite."""
+    expected = np.dtype(dtype)
+    is_float = expected.kind == "f"
 
     def coerce(value: Any) -> np.ndarray:
-        if isinstance(value, (str, bytes)):
+        if type(value) is np.ndarray and value.dtype == expected and value.flags.c_contiguous:
+            array = value  # the decoder's fast path: no copy
+        elif isinstance(value, (str, bytes)):
             raise ValueError(f"expected an array of shape {shape}, got {type(value).__name__}")
-        try:
-            array = np.ascontiguousarray(value, dtype=dtype)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"expected a {np.dtype(dtype).name} array of shape {shape}: {exc}") from None
+        else:
+            try:
+                array = np.ascontiguousarray(value, dtype=expected)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"expected a {expected.name} array of shape {shape}: {exc}") from None
         if array.shape != shape:
             raise ValueError(f"expected shape {shape}, got {array.shape}")
-        if array.dtype.kind == "f" and not np.isfinite(array).all():
+        if is_float and not np.isfinite(array).all():
             raise ValueError("array contains NaN or Inf")
         return array
 

@@ -16,7 +16,19 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-TEAM_SHARED = REPO.parent / "shared"  # the team folder beside the checkout (tests only)
+
+
+def _team_shared() -> Path:
+    """The team folder (paper, real G1 model, mocap clips): $SAFEMIMIC_TEAM_SHARED, else beside the
+    checkout, else /work/shared (where CI's clean clone may live elsewhere). Tests only."""
+    candidates = [os.environ.get("SAFEMIMIC_TEAM_SHARED"), REPO.parent / "shared", "/work/shared"]
+    for candidate in candidates:
+        if candidate and (Path(candidate) / "robots" / "unitree_g1").is_dir():
+            return Path(candidate)
+    return REPO.parent / "shared"
+
+
+TEAM_SHARED = _team_shared()
 G1_MJCF = TEAM_SHARED / "robots" / "unitree_g1" / "g1.xml"
 MOCAP_DIR = TEAM_SHARED / "data" / "mocap"
 
