@@ -124,3 +124,27 @@ def test_default_pipeline_is_clear_at_home() -> None:
     assert len(pipeline.pairs) == len(pipeline.spec.self_pairs) + 49
     assert rows.min_h(self_rows=True) > 0
     assert isinstance(pipeline.barrier, CapsuleBarrier)
+
+
+def test_compiled_kernel_matches_vectorised_geometry() -> None:
+    """The numba pair loop equals shared.geometry on random, parallel and degenerate segments."""
+    from services.safety.barrier_kernel import pair_distances
+    from shared.geometry import segment_closest_points
+
+    rng = np.random.default_rng(21)
+    n = 3000
+    endpoints = rng.normal(size=(2 * n, 2, 3))
+    endpoints[n : n + 200, 1] = endpoints[n : n + 200, 0]  # zero-length
+    endpoints[n + 200 : n + 400] = endpoints[200:400] + rng.normal(size=(200, 1, 3))  # parallel
+    first, second = np.arange(n, dtype=np.int64), np.arange(n, 2 * n, dtype=np.int64)
+    radii = rng.uniform(0, 0.1, 2 * n)
+    out = [np.empty(n) for _ in range(4)] + [np.empty((n, 3))]
+    pair_distances(endpoints, radii, first, second, 0.02, 1e-9, *out)
+    distance, h, s, t, normal = out
+    ref = segment_closest_points(endpoints[:n, 0], endpoints[:n, 1], endpoints[n:, 0], endpoints[n:, 1])
+    np.testing.assert_allclose(distance, ref.distance, atol=1e-12)
+    np.testing.assert_allclose(h, ref.distance - radii[:n] - radii[n:] - 0.02, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-12)
+    p = endpoints[:n, 0] + s[:, None] * (endpoints[:n, 1] - endpoints[:n, 0])
+    q = endpoints[n:, 0] + t[:, None] * (endpoints[n:, 1] - endpoints[n:, 0])
+    np.testing.assert_allclose(np.linalg.norm(p - q, axis=1), distance, atol=1e-12)

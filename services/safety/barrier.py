@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.safety.pairs import N_ROBOT, PairSet
-from shared.geometry import safe_normal, segment_closest_points
+from services.safety.barrier_kernel import pair_distances, pair_rows
+from shared.geometry import EPS_NORMAL, safe_normal
 
 #: b of a disabled row (A = 0): 0 ≥ −1e9 always holds.
 DISABLED_B = -1e9
@@ -34,6 +35,7 @@ class BarrierRows:
     distance: np.ndarray
     enabled: np.ndarray
     is_self: np.ndarray
+    min_h_all: float = float("inf")  # min h over enabled rows (inf: none)
 
     def min_h(self, self_rows: bool) -> float | None:
         """Minimum h over enabled self (or robot–human) rows; None if there is none."""
@@ -55,12 +57,9 @@ class CapsuleBarrier:
         self._valid = np.ones(n_stack, bool)
         self._radii[:N_ROBOT] = self.robot_radii
         self._is_self = pairs.is_self
-        # index arrays scattering closest-point weights onto the robot endpoints (capsule c, end e → 2c + e)
-        self._rows = np.arange(len(pairs))
-        self._self_rows = np.flatnonzero(self._is_self)
-        self._a0, self._a1 = 2 * pairs.first, 2 * pairs.first + 1
-        self._b0, self._b1 = 2 * pairs.second[self._self_rows], 2 * pairs.second[self._self_rows] + 1
-        self._point_weights = np.zeros((len(pairs), 2 * N_ROBOT))
+        self._first = np.ascontiguousarray(pairs.first, dtype=np.int64)
+        self._second = np.ascontiguousarray(pairs.second, dtype=np.int64)
+        self._all_enabled = True
 
     def set_external(
         self,
@@ -73,35 +72,34 @@ class CapsuleBarrier:
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
-            return
-        self._endpoints[ext] = endpoints
-        self._radii[ext] = radii
-        self._valid[ext] = True if valid is None else valid
-        self._velocities[ext] = 0.0 if velocities is None else velocities
+        else:
+            self._endpoints[ext] = endpoints
+            self._radii[ext] = radii
+            self._valid[ext] = True if valid is None else valid
+            self._velocities[ext] = 0.0 if velocities is None else velocities
+        self._all_enabled = bool(self._valid.all())
 
     def evaluate(self, robot_endpoints: np.ndarray, robot_jacobians: np.ndarray, gamma: float, phi: float) -> BarrierRows:
         """Rows at the robot configuration whose FK gave ``robot_endpoints`` (7,2,3) and
         ``robot_jacobians`` (7,2,3,n)."""
         self._endpoints[:N_ROBOT] = robot_endpoints
-        i, j = self.pairs.first, self.pairs.second
-        ea, eb = self._endpoints[i], self._endpoints[j]
-        closest = segment_closest_points(ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1])
-        normal = safe_normal(closest.p, closest.q, (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
-        # J_pA − J_pB as one weighted sum over the 14 robot endpoint Jacobians: (m, 14) @ (14, 3n)
-        weights = self._point_weights
-        weights[self._rows, self._a0] = 1.0 - closest.s
-        weights[self._rows, self._a1] = closest.s
-        weights[self._self_rows, self._b0] = closest.t[self._self_rows] - 1.0
-        weights[self._self_rows, self._b1] = -closest.t[self._self_rows]
-        jp = (weights @ robot_jacobians.reshape(2 * N_ROBOT, -1)).reshape(-1, 3, self.n_joints)
-        A = np.matmul(normal[:, None, :], jp)[:, 0, :]
-        h = closest.distance - (self._radii[i] + self._radii[j] + phi)
-        vb = self._velocities[j]
-        v_pb = (1.0 - closest.t)[:, None] * vb[:, 0] + closest.t[:, None] * vb[:, 1]
-        b = -gamma * h + np.einsum("mk,mk->m", normal, v_pb)
-        enabled = self._valid[j]
-        if not enabled.all():
+        m = len(self._first)
+        distance, h, s, t = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+        normal = np.empty((m, 3))
+        first, second = self._first, self._second
+        need = pair_distances(self._endpoints, self._radii, first, second, phi, EPS_NORMAL, distance, h, s, t, normal)
+        if need:  # segments touching or crossing: the documented deterministic fallback normal
+            rows = np.flatnonzero(distance < EPS_NORMAL)
+            ea, eb = self._endpoints[first[rows]], self._endpoints[second[rows]]
+            normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
+        A, b = np.empty((m, self.n_joints)), np.empty(m)
+        pair_rows(normal, s, t, h, robot_jacobians, self._velocities, first, second, N_ROBOT, gamma, A, b)
+        enabled = self._valid[second]
+        if not self._all_enabled:
             A[~enabled] = 0.0
             b[~enabled] = DISABLED_B
-            h = np.where(enabled, h, np.nan)
-        return BarrierRows(A=A, b=b, h=h, distance=closest.distance, enabled=enabled, is_self=self._is_self)
+            h[~enabled] = np.nan
+            min_h_all = float(h[enabled].min()) if enabled.any() else float("inf")
+        else:
+            min_h_all = float(h.min()) if m else float("inf")
+        return BarrierRows(A=A, b=b, h=h, distance=distance, enabled=enabled, is_self=self._is_self, min_h_all=min_h_all)

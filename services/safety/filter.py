@@ -93,18 +93,18 @@ class SafetyFilter:
     def step(self, q_nom: np.ndarray, dt: float) -> StepResult:
         """One control step towards ``q_nom`` (n,) over ``dt`` seconds."""
         p = self.params
-        rows = self.rows_at(self.q_cbf)
-        u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - self.q_cbf)
-        lower = np.maximum(-p.u_max, (self.q_min - self.q_cbf) / dt)
-        upper = np.minimum(p.u_max, (self.q_max - self.q_cbf) / dt)
-        lower = np.minimum(lower, upper)
+        q = self.q_cbf
+        rows = self.rows_at(q)
+        u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - q)
+        upper = np.minimum(p.u_max, (self.q_max - q) / dt)
+        lower = np.minimum(np.maximum(-p.u_max, (self.q_min - q) / dt), upper)
         problem = QPProblem(w=p.weights, u_ref=u_ref, A=rows.A, b=rows.b, lower=lower, upper=upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
         u = solution.u
         if u is not None:
             mode = SafetyMode.ACTIVE if solution.active_rows else SafetyMode.NOMINAL
-            if np.any(rows.h[rows.enabled] < -VIOLATION_TOL):
+            if rows.min_h_all < -VIOLATION_TOL:
                 mode = SafetyMode.RELAXED
             active = solution.active_rows
         else:
@@ -115,10 +115,10 @@ class SafetyFilter:
                 active = int(np.count_nonzero(rows.A @ u - rows.b <= 1e-6))
             else:
                 u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
-        q_next = self.q_cbf + dt * u
+        q_next = q + dt * u
         if not np.isfinite(q_next).all():
-            u, q_next, mode = np.zeros(problem.n), self.q_cbf.copy(), SafetyMode.HOLD
-        self.q_cbf = np.clip(q_next, self.q_min, self.q_max)
+            u, q_next, mode = np.zeros(problem.n), q.copy(), SafetyMode.HOLD
+        self.q_cbf = np.minimum(np.maximum(q_next, self.q_min), self.q_max)
         return StepResult(
             q_cbf=self.q_cbf.copy(), u=u, u_ref=u_ref, mode=mode, rows=rows, active_rows=active,
             qp_time_s=qp_time, qp_status=solution.status,

@@ -41,6 +41,7 @@ class DaqpBackend(QPBackend):
             self._sense = np.zeros(n + m, dtype=np.int32)
 
     def solve(self, problem: QPProblem) -> QPSolution:
+        start = time.perf_counter()
         n = problem.n
         self._buffers(problem)
         H = self._H
@@ -51,14 +52,11 @@ class DaqpBackend(QPBackend):
         lower[n:] = problem.b
         if self._sense is None:
             self._sense = np.zeros(upper.shape[0], dtype=np.int32)
-        start = time.perf_counter()
         x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._sense, **self._settings)
-        seconds = time.perf_counter() - start
         if exitflag in (1, 2):
             status = QPStatus.OPTIMAL
-            lam = np.asarray(info["lam"])
-            self._sense = np.where(lam != 0.0, 1, 0).astype(np.int32)
+            self._sense = (info["lam"] != 0.0).astype(np.int32)
         else:
             status = QPStatus.INFEASIBLE if exitflag == -1 else QPStatus.FAILED
             self._sense = None
-        return self._finish(problem, np.asarray(x, dtype=np.float64), status, seconds, int(info.get("iterations", 0)))
+        return self._finish(problem, x, status, time.perf_counter() - start, int(info["iterations"]))

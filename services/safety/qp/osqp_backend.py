@@ -24,7 +24,7 @@ class OsqpBackend(QPBackend):
     name = "osqp"
 
     def __init__(self, eps: float = 1e-7, max_iter: int = 4000) -> None:
-        self._settings = dict(eps_abs=eps, eps_rel=eps, max_iter=max_iter, polishing=True, verbose=False, warm_starting=True)
+        self._settings = dict(eps_abs=eps, eps_rel=eps, max_iter=max_iter, polishing=False, verbose=False, warm_starting=True)
         self._solver: osqp.OSQP | None = None
         self._shape: tuple[int, int] | None = None
         self._index: np.ndarray | None = None  # CSC data order → dense (row, col) flat index

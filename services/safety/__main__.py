@@ -1,0 +1,3 @@
+from services.safety.service import cli
+
+cli()

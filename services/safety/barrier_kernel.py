@@ -1,0 +1,88 @@
+"""Compiled (numba) inner loops of the capsule barrier: one pass over the monitored pairs.
+
+The math is the same as ``shared.geometry.segment_closest_points`` (Ericson §5.1.9, cross-product
+form, three clamped steps) and ``services.safety.barrier`` (eqs. 4–7), written as scalar loops
+so that a 72-pair step costs a few microseconds instead of ~100 numpy calls. Tests check both
+kernels against the vectorised geometry and against finite differences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_TINY = 1e-300
+
+
+@njit(cache=True, nogil=True)
+def pair_distances(endpoints, radii, first, second, phi, eps, distance, h, s_out, t_out, normal):  # pragma: no cover - compiled
+    """Closest points of every pair (first[i], second[i]) of ``endpoints`` (S, 2, 3).
+
+    Writes ``distance`` (m,), ``h = d − (r_A + r_B + φ)``, the segment parameters ``s_out``,
+    ``t_out`` and the unit normal n = (p_A − p_B)/d (NaN row where d < eps: the caller supplies a
+    fallback). Returns the number of rows that need a fallback normal.
+    """
+    need = 0
+    for i in range(first.shape[0]):
+        ia, ib = first[i], second[i]
+        d1x = endpoints[ia, 1, 0] - endpoints[ia, 0, 0]
+        d1y = endpoints[ia, 1, 1] - endpoints[ia, 0, 1]
+        d1z = endpoints[ia, 1, 2] - endpoints[ia, 0, 2]
+        d2x = endpoints[ib, 1, 0] - endpoints[ib, 0, 0]
+        d2y = endpoints[ib, 1, 1] - endpoints[ib, 0, 1]
+        d2z = endpoints[ib, 1, 2] - endpoints[ib, 0, 2]
+        rx = endpoints[ia, 0, 0] - endpoints[ib, 0, 0]
+        ry = endpoints[ia, 0, 1] - endpoints[ib, 0, 1]
+        rz = endpoints[ia, 0, 2] - endpoints[ib, 0, 2]
+        # n = d1 × d2, m = d2 × r (well conditioned for near-parallel segments)
+        nx, ny, nz = d1y * d2z - d1z * d2y, d1z * d2x - d1x * d2z, d1x * d2y - d1y * d2x
+        mx, my, mz = d2y * rz - d2z * ry, d2z * rx - d2x * rz, d2x * ry - d2y * rx
+        a = max(d1x * d1x + d1y * d1y + d1z * d1z, _TINY)
+        e = max(d2x * d2x + d2y * d2y + d2z * d2z, _TINY)
+        den = max(nx * nx + ny * ny + nz * nz, _TINY)
+        b = d1x * d2x + d1y * d2y + d1z * d2z
+        c = d1x * rx + d1y * ry + d1z * rz
+        f = d2x * rx + d2y * ry + d2z * rz
+        s = min(max((mx * nx + my * ny + mz * nz) / den, 0.0), 1.0)
+        t = min(max((b * s + f) / e, 0.0), 1.0)
+        s = min(max((b * t - c) / a, 0.0), 1.0)
+        px = rx + s * d1x - t * d2x  # p_A − p_B
+        py = ry + s * d1y - t * d2y
+        pz = rz + s * d1z - t * d2z
+        d = np.sqrt(px * px + py * py + pz * pz)
+        distance[i] = d
+        h[i] = d - (radii[ia] + radii[ib] + phi)
+        s_out[i] = s
+        t_out[i] = t
+        if d >= eps:
+            normal[i, 0], normal[i, 1], normal[i, 2] = px / d, py / d, pz / d
+        else:
+            normal[i, 0] = normal[i, 1] = normal[i, 2] = np.nan
+            need += 1
+    return need
+
+
+@njit(cache=True, nogil=True)
+def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, A, b):  # pragma: no cover - compiled
+    """CBF rows A u ≥ b: A_i = nᵀ(J_pA − J_pB), b_i = −γ h_i + nᵀ v_pB.
+
+    ``jacobians`` (n_robot, 2, 3, n) are the robot endpoint Jacobians; ``velocities`` (S, 2, 3)
+    the known endpoint velocities of external capsules (zero for robot capsules).
+    """
+    n_joints = jacobians.shape[3]
+    for i in range(first.shape[0]):
+        ia, ib = first[i], second[i]
+        wa0, wa1 = 1.0 - s[i], s[i]
+        wb0, wb1 = 1.0 - t[i], t[i]
+        for k in range(n_joints):
+            acc = 0.0
+            for c in range(3):
+                acc += normal[i, c] * (wa0 * jacobians[ia, 0, c, k] + wa1 * jacobians[ia, 1, c, k])
+                if ib < n_robot:
+                    acc -= normal[i, c] * (wb0 * jacobians[ib, 0, c, k] + wb1 * jacobians[ib, 1, c, k])
+            A[i, k] = acc
+        v_known = 0.0
+        if ib >= n_robot:
+            for c in range(3):
+                v_known += normal[i, c] * (wb0 * velocities[ib, 0, c] + wb1 * velocities[ib, 1, c])
+        b[i] = -gamma * h[i] + v_known
