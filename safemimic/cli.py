@@ -17,6 +17,11 @@ from safemimic import __version__
 #: subcommand → (module, one-line help). Later issues add perception, safety, executor, ...
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "router": ("services.router.main", "run a Zenoh router (zenoh's own, router mode) for clients on several hosts"),
+    "safety": ("services.safety.service", "run the CBF safety service: HumanState → retarget → CBF-QP → JointCommand at 500 Hz"),
+    "perception": ("services.perception.service", "run the perception service: skeleton source → filter → θ + human capsules → HumanState"),
+    "record-scenario": ("services.perception.record", "write a scripted synthetic scenario (known angles) as a .npz skeleton recording"),
+    "config-api": ("services.config_api.main", "serve the config API and web console: validated, persisted, published parameter changes"),
+    "executor": ("services.executor.service", "run the robot executor: MuJoCo simulation (or hardware) following JointCommand, publishing JointState"),
     "bench": ("bench.run", "run the benchmarks, print a table and write JSON under bench/results/"),
     "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),
 }

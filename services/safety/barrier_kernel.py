@@ -8,8 +8,15 @@ kernels against the vectorised geometry and against finite differences.
 
 from __future__ import annotations
 
-import numpy as np
-from numba import njit
+import os
+from pathlib import Path
+
+# Compiled kernels are cached on disk; an installed package's __pycache__ may not be writable,
+# so default numba's cache to the user's cache folder (an explicit NUMBA_CACHE_DIR wins).
+os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "safemimic" / "numba"))
+
+import numpy as np  # noqa: E402
+from numba import njit  # noqa: E402
 
 _TINY = 1e-300
 

@@ -38,6 +38,7 @@ class FilterParams:
     weights: np.ndarray
     u_max: np.ndarray
     relax_penalty: float
+    u_min: np.ndarray | None = None  # lower velocity bound (n,); None: −u_max
 
     @classmethod
     def from_config(cls, safety) -> FilterParams:  # shared.config.SafetyConfig
@@ -48,6 +49,7 @@ class FilterParams:
             weights=np.asarray(safety.weights, dtype=np.float64),
             u_max=np.asarray(safety.u_max, dtype=np.float64),
             relax_penalty=safety.relax_penalty,
+            u_min=None if safety.u_min is None else np.asarray(safety.u_min, dtype=np.float64),
         )
 
 
@@ -97,7 +99,8 @@ class SafetyFilter:
         rows = self.rows_at(q)
         u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - q)
         upper = np.minimum(p.u_max, (self.q_max - q) / dt)
-        lower = np.minimum(np.maximum(-p.u_max, (self.q_min - q) / dt), upper)
+        u_min = -p.u_max if p.u_min is None else p.u_min
+        lower = np.minimum(np.maximum(u_min, (self.q_min - q) / dt), upper)
         problem = QPProblem(w=p.weights, u_ref=u_ref, A=rows.A, b=rows.b, lower=lower, upper=upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s

@@ -26,6 +26,7 @@ miss; tick slots skipped entirely after a long stall are misses too and the sche
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import logging
 import math
@@ -61,6 +62,8 @@ SWITCH_INTERVAL_S = 0.0005
 DEFAULT_RT_PRIORITY = 10
 #: Step times kept for the exit summary's percentiles (a ring buffer: 20 s at 500 Hz).
 _STEP_TIME_WINDOW = 10_000
+#: At most one deadline-miss warning per this many seconds (never per tick).
+_MISS_LOG_INTERVAL_S = 5.0
 #: Unexpected exceptions in consecutive ticks after which the service gives up (a bug, not noise).
 _MAX_CONSECUTIVE_ERRORS = 100
 
@@ -94,19 +97,59 @@ def leave_realtime() -> None:
         pass
 
 
-def _pipeline_key(conf: StackConfig) -> tuple[Any, ...]:
-    """The settings that need a new pipeline (kinematics, pair set, QP backend) when they change."""
-    return (conf.robot.spec, conf.robot.model, conf.safety.pairs, conf.safety.backend)
+#: safety.* fields applied in place at the next tick: the filter's parameters (FilterParams, same
+#: names as in SafetyConfig) and the ones this service reads every tick. A change to any other
+#: robot.* or safety.* field (model, pair preset, backend, and whatever is added later) rebuilds
+#: the pipeline, so no setting is ever silently ignored.
+_HOT_SAFETY_FIELDS = frozenset(f.name for f in dataclasses.fields(FilterParams)) | {
+    "rate_hz", "status_rate_hz", "human_timeout_s", "human_velocity_term",
+}
 
 
-def warm_up(pipeline: SafetyPipeline, dt: float) -> None:
-    """One throw-away step, so one-time lazy work (numba's compiled-function cache, a QP solver's
-    first setup: 0.2–0.3 s measured here) happens now and not inside a control tick."""
+def needs_new_pipeline(old: StackConfig, new: StackConfig) -> bool:
+    """Whether going from ``old`` to ``new`` needs a rebuilt pipeline (else: parameters in place)."""
+    if new.robot != old.robot:
+        return True
+    before, after = old.safety.model_dump(), new.safety.model_dump()
+    changed = {name for name in before.keys() | after.keys() if before.get(name) != after.get(name)}
+    return bool(changed - _HOT_SAFETY_FIELDS)
+
+
+def warm_up(pipeline: SafetyPipeline, dt: float, q: np.ndarray | None = None,
+            human: HumanState | None = None, steps: int = 3) -> None:
+    """Throw-away steps from ``q`` (default: the filter's) with ``human``'s capsules, so one-time
+    lazy work (numba's compiled-function cache, a QP solver's first setup: 0.2–0.3 s measured
+    here) and the solver's warm start happen now, not inside a control tick. The filter ends at ``q``."""
     filt = pipeline.filter
-    q = filt.q_cbf.copy()
-    pipeline.barrier.set_external(None)
-    filt.step(q, dt)
+    q = filt.q_cbf.copy() if q is None else np.array(q, dtype=np.float64)
+    if human is None:
+        pipeline.barrier.set_external(None)
+    else:
+        pipeline.barrier.set_external(*external_capsules(human, pipeline.pairs.n_external, False))
     filt.reset(q)
+    for _ in range(steps):
+        filt.step(q, dt)
+    filt.reset(q)
+
+
+def external_capsules(
+    message: HumanState, n_external: int, use_velocity: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The barrier's external capsule arrays (endpoints, radii, valid, velocities) for one person.
+
+    The pair set fixes the number of external slots (7 per person; the ``paper72`` preset has a
+    second person): this person fills the first 7, the other slots stay invalid (disabled rows).
+    """
+    n = min(n_external, message.capsules.shape[0])
+    endpoints = np.zeros((n_external, 2, 3))
+    radii = np.zeros(n_external)
+    valid = np.zeros(n_external, bool)
+    endpoints[:n], radii[:n], valid[:n] = message.capsules[:n], message.capsule_radii[:n], message.capsule_valid[:n]
+    velocities = None
+    if use_velocity and message.capsule_velocities is not None:
+        velocities = np.zeros((n_external, 2, 3))
+        velocities[:n] = message.capsule_velocities[:n]
+    return endpoints, radii, valid, velocities
 
 
 def _finite_or_none(value: float | None) -> float | None:
@@ -214,10 +257,13 @@ class SafetyService:
         with self._config_lock:
             reference = self._pending.conf if self._pending else self.conf
             pipeline = self._pending.pipeline if self._pending else None
-        if _pipeline_key(new) != _pipeline_key(reference):
+        if needs_new_pipeline(reference, new):
             try:
                 pipeline = build_pipeline(new)
-                warm_up(pipeline, 1.0 / new.safety.rate_hz)  # here, off the control thread
+                # here, off the control thread, near the live operating point
+                human = self.human.get()
+                warm_up(pipeline, 1.0 / new.safety.rate_hz, self._last_q,
+                        human.message if human is not None else None)
             except Exception as exc:  # a model that does not load, an unknown preset, ...
                 self._rejected["config"] += 1
                 log.warning("rejected config update v%d: cannot build the safety pipeline: %s", update.version, exc)
@@ -319,10 +365,7 @@ class SafetyService:
             return received
         message = received.message
         use_velocity = self.conf.safety.human_velocity_term and not stale
-        self.pipeline.barrier.set_external(
-            message.capsules, message.capsule_radii, message.capsule_valid,
-            message.capsule_velocities if use_velocity else None,
-        )
+        self.pipeline.barrier.set_external(*external_capsules(message, self.pipeline.pairs.n_external, use_velocity))
         if not stale:  # stale: hold q_nom where it was
             self._q_nom = self.pipeline.retargeter(message.theta, message.theta_valid)
         if stale and not self._human_stale:
@@ -386,6 +429,7 @@ class SafetyService:
         end = math.inf if duration is None else begin + duration
         k = 0
         consecutive_errors = 0
+        misses_logged, last_miss_log = 0, -math.inf
         while not stop.is_set():
             due = anchor + k * period
             now = time.monotonic()
@@ -412,8 +456,13 @@ class SafetyService:
                     log.exception("safety tick failed (%d so far)", self.tick_errors)
                 if consecutive_errors >= _MAX_CONSECUTIVE_ERRORS:
                     raise
-            if time.monotonic() > due + period:
+            done = time.monotonic()
+            if done > due + period:
                 self.deadline_misses += 1
+            if self.deadline_misses != misses_logged and done - last_miss_log >= _MISS_LOG_INTERVAL_S:
+                log.warning("%d deadline misses so far (this tick: started %.2f ms late, took %.2f ms)",
+                            self.deadline_misses, (now - due) * 1e3, self._last_step_s * 1e3)
+                misses_logged, last_miss_log = self.deadline_misses, done
             k += 1
             if self.period != period:  # a config update changed the rate: restart the schedule
                 period, anchor, k = self.period, time.monotonic(), 1

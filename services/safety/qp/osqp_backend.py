@@ -23,8 +23,13 @@ class OsqpBackend(QPBackend):
 
     name = "osqp"
 
-    def __init__(self, eps: float = 1e-7, max_iter: int = 4000) -> None:
-        self._settings = dict(eps_abs=eps, eps_rel=eps, max_iter=max_iter, polishing=False, verbose=False, warm_starting=True)
+    def __init__(self, eps: float = 1e-6, max_iter: int = 4000) -> None:
+        # Iterations are bounded (not wall time, which would make results depend on machine load):
+        # an infeasible problem fails within a few thousand cheap iterations and the filter relaxes.
+        # Polishing is off: OSQP 1.x prints a line on every solve it does not polish.
+        self._settings = dict(
+            eps_abs=eps, eps_rel=eps, max_iter=max_iter, polishing=False, verbose=False, warm_starting=True,
+        )
         self._solver: osqp.OSQP | None = None
         self._shape: tuple[int, int] | None = None
         self._index: np.ndarray | None = None  # CSC data order → dense (row, col) flat index

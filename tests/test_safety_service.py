@@ -1,0 +1,454 @@
+"""The safety service (`safemimic safety`) as a real process over real Zenoh on 127.0.0.1.
+
+The service runs in its own OS process (peer mode, multicast scouting off, explicit endpoints);
+this test process is the other peer: it plays perception (HumanState), the config API
+(ConfigUpdate) and a listener of JointCommand / SafetyStatus. A few in-process tests drive
+:meth:`SafetyService.tick` directly for the state logic (resync, staleness, config swaps).
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+
+from services.safety.service import RESYNC_TOLERANCE, SafetyService, enter_realtime, leave_realtime
+from shared.bus import Bus
+from shared.config import BusConfig, load_config
+from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
+from shared.names import CAPSULE_NAMES, KEYPOINT_NAMES, POSE_ANGLE_NAMES
+from shared.robot_spec import default_robot_spec_path, load_robot_spec
+from tests.conftest import Proc, free_port
+
+LEFT_SHOULDER_PITCH = POSE_ANGLE_NAMES.index("left_shoulder_pitch")  # θ index = joint index
+LEFT_FOREARM = CAPSULE_NAMES.index("left_forearm")
+RATE_HZ = 500.0
+N_SELF_PAIRS = len(load_robot_spec(default_robot_spec_path()).self_pairs)
+
+
+# --------------------------------------------------------------------------- helpers
+def person(x: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """15 keypoints and 7 capsules (robot frame: x forward, z up, floor 0) of a person standing
+    at distance ``x`` in front of the robot, arms down."""
+    k = {
+        "pelvis": (x, 0.0, 0.95), "spine_chest": (x, 0.0, 1.25), "head": (x, 0.0, 1.65),
+        "left_shoulder": (x, 0.19, 1.45), "left_elbow": (x, 0.21, 1.17), "left_wrist": (x, 0.22, 0.92),
+        "right_shoulder": (x, -0.19, 1.45), "right_elbow": (x, -0.21, 1.17), "right_wrist": (x, -0.22, 0.92),
+        "left_hip": (x, 0.1, 0.93), "left_knee": (x, 0.1, 0.5), "left_ankle": (x, 0.1, 0.08),
+        "right_hip": (x, -0.1, 0.93), "right_knee": (x, -0.1, 0.5), "right_ankle": (x, -0.1, 0.08),
+    }
+    keypoints = np.array([k[name] for name in KEYPOINT_NAMES], dtype=float)
+    segment = {
+        "torso": ("pelvis", "spine_chest"), "left_upper_arm": ("left_shoulder", "left_elbow"),
+        "left_forearm": ("left_elbow", "left_wrist"), "right_upper_arm": ("right_shoulder", "right_elbow"),
+        "right_forearm": ("right_elbow", "right_wrist"), "left_thigh": ("left_hip", "left_knee"),
+        "right_thigh": ("right_hip", "right_knee"),
+    }
+    capsules = np.array([[k[segment[c][0]], k[segment[c][1]]] for c in CAPSULE_NAMES], dtype=float)
+    return keypoints, capsules
+
+
+RADII = np.array([0.13, 0.05, 0.045, 0.05, 0.045, 0.07, 0.07])
+
+
+def human_state(theta: np.ndarray, capsules: np.ndarray, velocities: np.ndarray | None = None,
+                keypoints: np.ndarray | None = None) -> HumanState:
+    return HumanState(
+        stamp=time.monotonic(),
+        keypoints=person()[0] if keypoints is None else keypoints,
+        keypoint_valid=np.ones(15, bool),
+        theta=theta,
+        theta_valid=np.ones(8, bool),
+        capsules=capsules,
+        capsule_radii=RADII,
+        capsule_valid=np.ones(7, bool),
+        capsule_velocities=np.zeros((7, 2, 3)) if velocities is None else velocities,
+    )
+
+
+def arm_forward() -> np.ndarray:
+    theta = np.zeros(8)
+    theta[LEFT_SHOULDER_PITCH] = np.pi / 2  # the person's left arm raised straight forward
+    return theta
+
+
+@dataclass
+class Recorder:
+    """Every JointCommand and SafetyStatus received, with the local receive time."""
+
+    commands: list[tuple[float, JointCommand]] = field(default_factory=list)
+    statuses: list[tuple[float, SafetyStatus]] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def attach(self, bus: Bus) -> None:
+        bus.subscribe("robot/command", lambda m: self._add(self.commands, m))
+        bus.subscribe("safety/status", lambda m: self._add(self.statuses, m))
+
+    def _add(self, into: list, message) -> None:
+        with self.lock:
+            into.append((time.monotonic(), message))
+
+    def statuses_since(self, t: float) -> list[SafetyStatus]:
+        with self.lock:
+            return [m for r, m in self.statuses if r >= t]
+
+    def wait_status(self, predicate, timeout: float, since: float | None = None) -> SafetyStatus:
+        """The first status received after ``since`` (default: now) satisfying ``predicate``."""
+        since = time.monotonic() if since is None else since
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for message in self.statuses_since(since):
+                if predicate(message):
+                    return message
+            time.sleep(0.01)
+        last = self.statuses_since(since)[-1:] or self.statuses[-1:]
+        raise AssertionError(f"no matching status within {timeout}s; last: {last}")
+
+    def last_command(self) -> JointCommand:
+        with self.lock:
+            return self.commands[-1][1]
+
+    def wait_command(self, predicate, timeout: float) -> JointCommand:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.commands and predicate(self.last_command()):
+                return self.last_command()
+            time.sleep(0.01)
+        raise AssertionError(f"no matching command within {timeout}s; last: {self.last_command()}")
+
+
+class HumanPublisher:
+    """Publishes ``make()`` at 30 Hz on human/state from a thread until stopped."""
+
+    def __init__(self, bus: Bus, make) -> None:
+        self.make = make
+        self.last_put = 0.0
+        self._publisher = bus.publisher("human/state")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            self._publisher.put(self.make())
+            self.last_put = time.monotonic()
+            next_t += 1 / 30
+            self._stop.wait(max(0.0, next_t - time.monotonic()))
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._thread.join(2)
+        return self.last_put
+
+
+def loopback_bus(port: int) -> BusConfig:
+    return BusConfig(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+
+
+def service_args(port: int, robot_id: str, duration: float) -> list[str]:
+    return ["-m", "safemimic.cli", "safety", "--mode", "peer", "--connect", f"tcp/127.0.0.1:{port}",
+            "--no-multicast", "--robot-id", robot_id, "--duration", str(duration), "--rate", str(RATE_HZ)]
+
+
+def wait_first_command(rec: Recorder, proc: Proc, timeout: float = 20.0) -> float:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with rec.lock:
+            if rec.commands:
+                return rec.commands[0][0]
+        if proc.popen.poll() is not None:
+            break
+        time.sleep(0.01)
+    raise AssertionError(f"no JointCommand from the service; output:\n{''.join(proc.output)[-3000:]}")
+
+
+# --------------------------------------------------------------------------- 500 Hz for 5 s
+@pytest.mark.integration
+def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn) -> None:
+    port = free_port()
+    robot_id = f"rate{port}"
+    rec = Recorder()
+    with Bus(loopback_bus(port), robot_id, "test") as bus:
+        rec.attach(bus)
+        proc = spawn(*service_args(port, robot_id, 6.5))
+        t0 = wait_first_command(rec, proc)
+        assert "safety" in bus.alive_services(timeout_s=1.0)
+        time.sleep(max(0.0, t0 + 5.2 - time.monotonic()))
+        with rec.lock:
+            commands = list(rec.commands)
+            status = rec.statuses[-1][1]
+        summary = proc.wait_for(lambda line: line.startswith("safety:") and "ticks" in line, timeout=10)
+        assert proc.popen.wait(5) == 0
+        decode_failures = dict(bus.dropped)
+
+    # ≈ 500 commands in every second, none lost, all finite, nominal (nothing to avoid, nothing to
+    # track). Seconds are counted on the commands' own stamps (the service's CLOCK_MONOTONIC, the
+    # same clock as ours on one host), so a hiccup of this receiving process does not blur them.
+    s0 = commands[0][1].stamp
+    window = [m for _, m in commands if s0 <= m.stamp < s0 + 5]
+    per_second = [sum(1 for m in window if s0 + s <= m.stamp < s0 + s + 1) for s in range(5)]
+    assert all(490 <= n <= 505 for n in per_second), per_second
+    seqs = np.array([m.seq for m in window])
+    assert seqs[-1] - seqs[0] + 1 - len(window) <= 0.005 * len(window), "commands lost on loopback"
+    assert not decode_failures, decode_failures
+    assert all(np.isfinite(m.q).all() and np.isfinite(m.dq).all() for m in window)
+    assert {m.mode for m in window} == {SafetyMode.NOMINAL}
+    assert all(m.human_seq is None for m in window)
+    np.testing.assert_allclose(window[-1].q, window[0].q, atol=1e-9)  # q_nom = q_cbf: holds still
+
+    # The service's own account: deadline misses < 1 % of its ticks (ticks = command seq + 1).
+    ticks = commands[-1][1].seq + 1
+    assert status.deadline_misses < 0.01 * ticks, (status, ticks)
+    assert status.mode is SafetyMode.NOMINAL and status.min_h_human is None and not status.human_stale
+    assert status.min_h_self is not None and status.min_h_self > 0
+    assert status.backend == "daqp" and status.total_constraints == N_SELF_PAIRS
+    assert 0 < status.step_time_ms < 1000 / RATE_HZ
+    m = re.search(r"(\d+) ticks in ([\d.]+) s \(([\d.]+) Hz of 500\), (\d+) deadline misses", summary)
+    assert m, summary
+    n_ticks, elapsed, achieved, misses = int(m[1]), float(m[2]), float(m[3]), int(m[4])
+    assert abs(elapsed - 6.5) < 0.1 and abs(achieved - RATE_HZ) < 0.01 * RATE_HZ, summary
+    assert misses < 0.01 * n_ticks, summary
+    print(f"\n  {summary.strip()}; per second {per_second}")
+
+
+# --------------------------------------------------------------------------- one shared service
+@dataclass
+class Live:
+    bus: Bus
+    rec: Recorder
+    proc: Proc
+    port: int
+
+
+@pytest.fixture(scope="module")
+def live() -> Iterator[Live]:
+    """One service process for the behavioural checks below (≈ 2 s startup paid once)."""
+    port = free_port()
+    robot_id = f"live{port}"
+    rec = Recorder()
+    with Bus(loopback_bus(port), robot_id, "test") as bus:
+        rec.attach(bus)
+        proc = Proc([sys.executable, *service_args(port, robot_id, 60)])
+        try:
+            wait_first_command(rec, proc)
+            rec.wait_status(lambda s: True, timeout=5, since=0.0)
+            yield Live(bus, rec, proc, port)
+        finally:
+            proc.stop()
+
+
+@pytest.mark.integration
+def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) -> None:
+    keypoints, far = person(2.0)
+    state = {"capsules": far, "velocities": np.zeros((7, 2, 3))}
+    humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"], keypoints))
+    try:
+        # The arm follows the retargeted q_nom (arm forward = negative G1 shoulder pitch).
+        command = live.rec.wait_command(lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout=5)
+        assert command.mode in (SafetyMode.NOMINAL, SafetyMode.ACTIVE)
+        time.sleep(0.5)  # converged onto q_nom (K = 8/s)
+        tracking = live.rec.last_command().q
+        assert tracking[2] < -1.3
+        status = live.rec.wait_status(lambda s: s.min_h_human is not None, timeout=2)
+        assert status.min_h_human > 1.0  # 2 m away
+        assert status.total_constraints == N_SELF_PAIRS + 49 and not status.human_stale
+
+        # A forearm sweeps in at 0.5 m/s, across the robot's forward-pointing left arm, and stops
+        # 0.35 m in front of the chest at shoulder height (robot pelvis z 0.793, torso to ~1.1 m).
+        start = time.monotonic()
+        x0, x1, speed = 1.0, 0.35, 0.5
+        for x in np.arange(x0, x1, -speed / 60):
+            capsules = far.copy()
+            capsules[LEFT_FOREARM] = [[x, -0.1, 1.1], [x, 0.4, 1.1]]
+            velocities = np.zeros((7, 2, 3))
+            velocities[LEFT_FOREARM, :, 0] = -speed
+            state["capsules"], state["velocities"] = capsules, velocities
+            time.sleep(1 / 60)
+        capsules = far.copy()
+        capsules[LEFT_FOREARM] = [[x1, -0.1, 1.1], [x1, 0.4, 1.1]]
+        state["capsules"], state["velocities"] = capsules, np.zeros((7, 2, 3))
+        time.sleep(1.0)
+        during = live.rec.statuses_since(start)
+    finally:
+        humans.stop()
+
+    assert len(during) > 80, len(during)
+    bad = [s for s in during if s.min_h_human is not None and s.min_h_human < -1e-3 and s.mode is not SafetyMode.RELAXED]
+    assert not bad, bad[:3]
+    assert min(s.min_h_human for s in during) < 0.03  # the barrier really engaged
+    assert any(s.mode is SafetyMode.ACTIVE for s in during)
+    print(f"\n  intrusion: min h_human {min(s.min_h_human for s in during) * 1e3:.2f} mm, "
+          f"modes {sorted({s.mode.value for s in during})}")
+    final = live.rec.last_command()
+    assert np.isfinite(final.q).all()
+    assert np.abs(final.q - tracking).max() > 0.05  # the robot gave way: no longer at q_nom
+
+
+@pytest.mark.integration
+def test_malformed_human_state_is_counted_and_the_loop_keeps_running(live: Live) -> None:
+    before = live.rec.wait_status(lambda s: True, timeout=2).dropped.get("human/state", 0)
+    seq_before = live.rec.last_command().seq
+    for payload in (b"\x93garbage", b"", b"\xc1" * 40, human_state(arm_forward(), person()[1]).model_dump_json().encode()):
+        live.bus.put_raw("human/state", payload)
+    status = live.rec.wait_status(lambda s: s.dropped.get("human/state", 0) >= before + 4, timeout=3)
+    time.sleep(0.1)
+    assert live.rec.last_command().seq > seq_before + 50
+    assert status.mode in tuple(SafetyMode)
+
+
+@pytest.mark.integration
+def test_config_updates_apply_and_invalid_ones_are_counted(live: Live) -> None:
+    publisher = live.bus.publisher("config")
+    full = load_config(environ={}).model_dump(mode="json")
+    full["safety"]["gamma"] = 4.0
+    publisher.put(ConfigUpdate(stamp=time.monotonic(), version=7, changed=["safety.gamma"], config=full))
+    status = live.rec.wait_status(lambda s: s.config_version == 7, timeout=3)
+    rejected_before = status.dropped.get("config", 0)
+
+    bad = load_config(environ={}).model_dump(mode="json")
+    bad["safety"]["gamma"] = -1
+    publisher.put(ConfigUpdate(stamp=time.monotonic(), version=8, changed=["safety.gamma"], config=bad))
+    status = live.rec.wait_status(lambda s: s.dropped.get("config", 0) == rejected_before + 1, timeout=3)
+    assert status.config_version == 7
+    time.sleep(0.1)
+    assert live.rec.statuses_since(0.0)[-1].config_version == 7
+
+    # A structural change (QP backend) swaps the pipeline at the next step, the loop keeps its rate.
+    full["safety"]["backend"] = "osqp"
+    publisher.put(ConfigUpdate(stamp=time.monotonic(), version=9, changed=["safety.backend"], config=full))
+    status = live.rec.wait_status(lambda s: s.config_version == 9, timeout=5)
+    assert status.backend == "osqp"
+    assert np.isfinite(live.rec.last_command().q).all()
+    full["safety"]["backend"] = "daqp"  # back to the default for the checks that follow
+    publisher.put(ConfigUpdate(stamp=time.monotonic(), version=10, changed=["safety.backend"], config=full))
+    assert live.rec.wait_status(lambda s: s.config_version == 10, timeout=5).backend == "daqp"
+
+
+@pytest.mark.integration
+def test_stale_human_keeps_capsules_and_is_reported(live: Live) -> None:
+    humans = HumanPublisher(live.bus, lambda: human_state(np.zeros(8), person(1.5)[1]))
+    live.rec.wait_status(lambda s: not s.human_stale and s.min_h_human is not None, timeout=3)
+    last_put = humans.stop()
+    status = live.rec.wait_status(lambda s: s.human_stale, timeout=3)
+    stale_after = next(r for r, s in list(live.rec.statuses) if r > last_put and s.human_stale) - last_put
+    assert 0.45 <= stale_after <= 0.5 + 0.3, stale_after  # human_timeout_s = 0.5
+    assert status.min_h_human is not None and 0.5 < status.min_h_human < 1.5  # capsules kept
+
+
+@pytest.mark.integration
+def test_sigterm_stops_the_shared_service_cleanly_with_few_misses(live: Live) -> None:
+    """Last user of the shared service: SIGTERM → clean exit and a summary; across human traffic,
+    malformed payloads and a pipeline swap it still missed < 1 % of its deadlines."""
+    live.proc.popen.terminate()
+    assert live.proc.popen.wait(10) == 0
+    summary = live.proc.wait_for(lambda line: line.startswith("safety:"), timeout=5)
+    m = re.search(r"(\d+) ticks in ([\d.]+) s .* (\d+) deadline misses", summary)
+    assert m, summary
+    # a shorter run (≈ 2,000 ticks, one 20 ms stall is 0.5 %) with a pipeline swap in it: 2 %;
+    # the 1 % acceptance figure is test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses
+    assert int(m[3]) < 0.02 * int(m[1]), summary
+    print(f"\n  shared service: {summary.strip()}")
+
+
+# --------------------------------------------------------------------------- in-process logic
+@pytest.fixture
+def service() -> Iterator[SafetyService]:
+    conf = load_config(environ={}, overrides={"bus": {"multicast_scouting": False}, "robot_id": f"unit{free_port()}"})
+    with SafetyService(conf) as svc:
+        yield svc
+
+
+def test_joint_state_resyncs_q_cbf(service: SafetyService) -> None:
+    home = service.pipeline.filter.q_cbf.copy()
+    measured = home + np.array([0, 0, -0.1, 0.05, 0, 0, 0, 0])
+    service.joint_state.set(JointState(stamp=0.0, q=measured, dq=np.zeros(8)))
+    service.tick()
+    np.testing.assert_allclose(service.pipeline.filter.q_cbf, measured, atol=1e-12)  # first state: reset
+    assert service.resyncs == 0
+
+    service.joint_state.set(JointState(stamp=0.0, q=measured + 0.8 * RESYNC_TOLERANCE, dq=np.zeros(8)))
+    service.tick()
+    np.testing.assert_allclose(service.pipeline.filter.q_cbf, measured, atol=1e-12)  # within tolerance
+    pushed = measured.copy()
+    pushed[4] += 1.5 * RESYNC_TOLERANCE
+    service.joint_state.set(JointState(stamp=0.0, q=pushed, dq=np.zeros(8)))
+    service.tick()
+    np.testing.assert_allclose(service.pipeline.filter.q_cbf, pushed, atol=1e-12)
+    assert service.resyncs == 1
+    for _ in range(5):  # the same (old) measurement is never applied twice
+        service.tick()
+    assert service.resyncs == 1
+
+
+def test_stale_human_holds_q_nom_and_capsules(service: SafetyService) -> None:
+    service.on_human(human_state(arm_forward(), person(1.0)[1]))
+    received = service.human.get().received
+    result = service.tick(received + 0.01)
+    q_nom = service._q_nom.copy()
+    assert q_nom[2] < -1.0 and result.rows.min_h(False) is not None and not service._human_stale
+    result = service.tick(received + service.conf.safety.human_timeout_s + 0.1)
+    assert service._human_stale and result.rows.min_h(False) is not None
+    np.testing.assert_array_equal(service._q_nom, q_nom)
+    # a HumanState in another frame never reaches the barrier
+    other = human_state(np.zeros(8), person(0.2)[1])
+    other.frame_id = "camera"
+    service.on_human(other)
+    assert service.human.get().received == received and service.dropped()["human/state"] == 1
+
+
+def test_config_update_swaps_pipeline_and_rate(service: SafetyService) -> None:
+    full = load_config(environ={}).model_dump(mode="json")
+    # a parameter-only change is applied in place: same pipeline, new FilterParams
+    pipeline = service.pipeline
+    full["safety"]["phi"] = 0.05
+    service.on_config(ConfigUpdate(stamp=0.0, version=2, config=full))
+    service.tick()
+    assert service.pipeline is pipeline and service.pipeline.filter.params.phi == 0.05
+    assert service.config_version == 2
+    # a structural one (pair preset) and a retargeting change: new pipeline at the next step
+    full["safety"].update(pairs="paper72", rate_hz=250.0, gamma=3.0)
+    full["retargeting"]["mirror"] = True
+    q_before = service.pipeline.filter.q_cbf.copy()
+    service.on_config(ConfigUpdate(stamp=0.0, version=3, config=full))
+    assert service.config_version == 2  # applied at the next step, not in the callback
+    service.tick()
+    assert service.config_version == 3 and len(service.pipeline.pairs) == 72
+    # one person fills 7 of the preset's 14 external slots; the second person's rows stay disabled
+    service.on_human(human_state(np.zeros(8), person(1.0)[1]))
+    result = service.tick()
+    assert result.rows.min_h(False) is not None and int(result.rows.enabled.sum()) == N_SELF_PAIRS + 49
+    assert service.period == pytest.approx(1 / 250) and service.pipeline.filter.params.gamma == 3.0
+    assert service.pipeline.retargeter.mirror
+    np.testing.assert_allclose(service.pipeline.filter.q_cbf, q_before, atol=1e-9)  # q_cbf carried over
+    assert service.conf.robot_id == service.bus.robot_id  # the session's identity is not replaced
+    full["robot"]["spec"] = "robots/does_not_exist.yaml"
+    service.on_config(ConfigUpdate(stamp=0.0, version=4, config=full))
+    service.tick()
+    assert service.config_version == 3 and service.dropped()["config"] == 1
+
+
+def test_realtime_scheduling_is_entered_or_refused_cleanly() -> None:
+    import os
+
+    seen: dict[str, object] = {}
+
+    def worker() -> None:
+        seen["description"] = enter_realtime(5)
+        seen["during"] = os.sched_getscheduler(0)
+        leave_realtime()
+        seen["after"] = os.sched_getscheduler(0)
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join(5)
+    expected = os.SCHED_FIFO if str(seen["description"]).startswith("SCHED_FIFO") else os.SCHED_OTHER
+    assert seen["during"] == expected and seen["after"] == os.SCHED_OTHER
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # only the calling thread was affected
+    assert enter_realtime(0) == "normal scheduling"
