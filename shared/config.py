@@ -12,12 +12,12 @@ import os
 from collections.abc import Mapping
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from shared.names import IMITATION_JOINT_NAMES
+from shared.names import CAPSULE_NAMES, IMITATION_JOINT_NAMES
 
 ENV_PREFIX = "SAFEMIMIC__"
 CONFIG_ENV = "SAFEMIMIC_CONFIG"
@@ -27,6 +27,10 @@ DEFAULT_CONFIG_PATH = CONFIG_DIR / "default.yaml"
 
 N_JOINTS = len(IMITATION_JOINT_NAMES)
 JointVector = Annotated[list[float], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+NegativeJointVector = Annotated[list[Annotated[float, Field(lt=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+#: A robot capsule name (shared.names.CAPSULE_NAMES).
+CapsuleName = Literal[CAPSULE_NAMES]  # type: ignore[valid-type]
+CapsuleRadius = Annotated[float, Field(gt=0, le=0.5)]
 
 
 class ConfigError(ValueError):
@@ -68,11 +72,25 @@ class RetargetingConfig(_Section):
     offset: JointVector = Field(default_factory=lambda: [0.0] * N_JOINTS)
     theta_home: JointVector = Field(default_factory=lambda: [0.0] * N_JOINTS)
     mirror: bool = False
+    q_home: JointVector | None = Field(default=None, description="robot pose for θ = θ_home (rad); null: the robot description's home")
 
 
 class QPBackendName(str, Enum):
     DAQP = "daqp"
     OSQP = "osqp"
+
+
+class PairGroup(str, Enum):
+    """Groups of monitored capsule pairs that can be switched on and off together.
+
+    A robot–human pair is ``human``; a self pair is ``self_torso`` if it involves the torso, else
+    ``self_legs`` if it involves a thigh, else ``self_arms`` (arm against arm).
+    """
+
+    SELF_ARMS = "self_arms"
+    SELF_TORSO = "self_torso"
+    SELF_LEGS = "self_legs"
+    HUMAN = "human"
 
 
 class SafetyConfig(_Section):
@@ -90,6 +108,19 @@ class SafetyConfig(_Section):
     human_velocity_term: bool = True
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
     relax_penalty: float = Field(default=1e4, gt=0)
+    u_min: NegativeJointVector | None = Field(default=None, description="lower velocity bound per joint (rad/s); null: −u_max")
+    enabled_pair_groups: list[PairGroup] = Field(
+        default_factory=lambda: list(PairGroup), description="pair groups whose CBF rows are enforced"
+    )
+    capsule_radii: dict[CapsuleName, CapsuleRadius] = Field(
+        default_factory=dict, description="robot capsule radius overrides (m); unlisted: the robot description's"
+    )
+
+    @model_validator(mode="after")
+    def _unique_pair_groups(self) -> SafetyConfig:
+        if len(set(self.enabled_pair_groups)) != len(self.enabled_pair_groups):
+            raise ValueError("enabled_pair_groups lists a group twice")
+        return self
 
     @model_validator(mode="after")
     def _positive_vectors(self) -> SafetyConfig:
@@ -109,6 +140,24 @@ class ExecutorConfig(_Section):
     kd: float = Field(default=5.0, ge=0)
     command_timeout_s: float = Field(default=0.2, gt=0)
     viewer: bool = False
+    joint_gains: dict[str, tuple[float, float]] = Field(
+        default_factory=lambda: {"waist_roll_joint": (300.0, 30.0), "waist_pitch_joint": (300.0, 30.0)},
+        description="per-joint (kp, kd) overriding kp/kd or hold_kp/hold_kd; the waist carries the whole "
+        "upper body (≈ 0.9 kg·m² in roll), so kd = 5 would leave it badly underdamped",
+    )
+    hold_kp: float = Field(default=500.0, gt=0, description="servo stiffness of the joints held at home (N·m/rad)")
+    hold_kd: float = Field(default=10.0, ge=0, description="servo damping of the joints held at home (N·m·s/rad)")
+    gravity_compensation: bool = Field(
+        default=True, description="simulation: the servos add the links' gravity torque (within their torque limits)"
+    )
+    stats_interval_s: float = Field(default=5.0, gt=0, le=3600, description="one-line summary this often (s)")
+
+    @model_validator(mode="after")
+    def _positive_joint_gains(self) -> ExecutorConfig:
+        for joint, (kp, kd) in self.joint_gains.items():
+            if not (kp > 0 and kd >= 0):
+                raise ValueError(f"joint_gains[{joint!r}] must have kp > 0 and kd >= 0, got ({kp}, {kd})")
+        return self
 
 
 class ApiConfig(_Section):
@@ -117,6 +166,93 @@ class ApiConfig(_Section):
     host: str = "127.0.0.1"
     port: int = Field(default=8080, ge=0, le=65535)
     store: str | None = None
+    token: str | None = Field(default=None, min_length=16, max_length=256, description="bearer token for writes")
+    ack_timeout_s: float = Field(default=2.0, gt=0, le=60, description="wait this long for the safety service to apply a change")
+    history_length: int = Field(default=100, ge=1, le=10000, description="accepted changes kept in the store")
+    max_body_bytes: int = Field(default=65536, ge=1024, le=16 * 1024 * 1024)
+    cors_origins: list[str] = Field(default_factory=list, description="origins allowed by CORS; empty: no CORS")
+    calibrate_max_age_s: float = Field(default=0.5, gt=0, le=60, description="newest human state must be this fresh")
+    stream_rate_hz: float = Field(default=20.0, gt=0, le=100, description="status events per second on the live stream")
+
+
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+#: ``auto``, a named placement, ``recorded`` (as recorded) or ``x,y,yaw`` (m, m, rad).
+PLACEMENT_PATTERN = rf"^(?:auto|side-by-side|facing|recorded|{_NUMBER},{_NUMBER},{_NUMBER})$"
+
+
+class SkeletonSourceName(str, Enum):
+    REPLAY = "replay"
+    SCENARIO = "scenario"
+    CAMERA = "camera"
+
+
+class PoseEstimatorName(str, Enum):
+    CONTINUOUS = "continuous"
+    PAPER = "paper"
+
+
+class PointFilterConfig(_Section):
+    """Per-keypoint EMA + jump rejection (paper §II-A), in the robot frame.
+
+    EMA gain per frame α = 1 − exp(−Δt/τ); the steady-state lag behind a constant-velocity
+    point is Δt (1 − α)/α ≈ τ − Δt/2 seconds.
+    """
+
+    min_confidence: float = Field(default=0.3, ge=0, le=1, description="below: the point is missing this frame")
+    ema_tau_s: float = Field(default=0.03, ge=0, le=2, description="EMA time constant τ (s); 0: no smoothing")
+    max_speed: float = Field(default=12.0, gt=0, le=100, description="faster apparent motion is a jump: rejected (m/s)")
+    reacquire_frames: int = Field(default=3, ge=1, le=100, description="consistent rejected frames that re-anchor a point")
+    hold_s: float = Field(default=0.25, ge=0, le=10, description="a missing point is held this long, then invalid (s)")
+    reset_gap_s: float = Field(default=1.0, gt=0, le=60, description="no frame for this long: full filter reset (s)")
+
+
+class PoseAnglesConfig(_Section):
+    """The 8 pose angles θ (paper §II-A): estimator and its conditioning thresholds."""
+
+    estimator: PoseEstimatorName = PoseEstimatorName.CONTINUOUS
+    paper_zone: float = Field(
+        default=0.5, gt=0, le=1,
+        description="continuous = paper where the upper arm points down by at least this (−u_z ≥ it)",
+    )
+    pitch_observability: float = Field(
+        default=0.2, ge=0, le=1, description="|sagittal projection| below which pitch updates are damped"
+    )
+    min_segment: float = Field(default=0.05, gt=0, le=1, description="shorter segments make angles invalid (m)")
+
+    @model_validator(mode="after")
+    def _observability_inside_paper_zone(self) -> PoseAnglesConfig:
+        if self.pitch_observability > self.paper_zone:
+            raise ValueError("pitch_observability must not exceed paper_zone (the paper zone is never damped)")
+        return self
+
+
+class PerceptionConfig(_Section):
+    """Perception service (DESIGN §1): skeleton source → point filter → θ + human capsules."""
+
+    source: SkeletonSourceName = SkeletonSourceName.SCENARIO
+    recording: str | None = Field(default=None, description=".npz recording of the replay source (DESIGN §6)")
+    scenario: str = Field(default="neutral", pattern=r"^[a-z0-9\-]+$")
+    scenario_fps: float = Field(default=30.0, gt=0, le=1000)
+    scenario_shoulder_width: float = Field(default=0.36, ge=0.15, le=0.5, description="synthetic person (m)")
+    realtime: bool = Field(default=True, description="pace frames at the source rate; false: as fast as possible")
+    loop: bool = False
+    placement: str = Field(default="auto", pattern=PLACEMENT_PATTERN)
+    side_by_side_y: float = Field(default=0.70, ge=-5, le=5, description="side-by-side: lateral offset, + = robot's left (m)")
+    facing_distance: float = Field(default=0.95, ge=0, le=10, description="facing: distance in front of the robot (m)")
+    wait_subscriber_s: float = Field(default=0.0, ge=0, le=600, description="wait up to this long for a subscriber")
+    stats_interval_s: float = Field(default=5.0, gt=0, le=3600)
+    point_filter: PointFilterConfig = Field(default_factory=PointFilterConfig)
+    angles: PoseAnglesConfig = Field(default_factory=PoseAnglesConfig)
+
+
+class HumanConfig(_Section):
+    """The 7 human capsules (paper §III-A): radii (m) around the keypoint segments."""
+
+    torso_radius: float = Field(default=0.15, gt=0, le=0.5)
+    upper_arm_radius: float = Field(default=0.06, gt=0, le=0.3)
+    forearm_radius: float = Field(default=0.05, gt=0, le=0.3)
+    thigh_radius: float = Field(default=0.08, gt=0, le=0.3)
+    hand_extension: float = Field(default=0.10, ge=0, le=0.3, description="forearm capsule reaches past the wrist (m)")
 
 
 class StackConfig(_Section):
@@ -129,6 +265,8 @@ class StackConfig(_Section):
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
     executor: ExecutorConfig = Field(default_factory=ExecutorConfig)
     api: ApiConfig = Field(default_factory=ApiConfig)
+    perception: PerceptionConfig = Field(default_factory=PerceptionConfig)
+    human: HumanConfig = Field(default_factory=HumanConfig)
 
 
 def _format_validation_error(exc: ValidationError, origin: str) -> str:

@@ -25,6 +25,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from shared.config import CONFIG_DIR, StackConfig, resolve_config_path
 from shared.names import CAPSULE_NAMES, IMITATION_JOINT_NAMES
 
 __all__ = [
@@ -244,3 +245,9 @@ def load_robot_spec(path: str | Path) -> RobotSpec:
         return RobotSpec.model_validate(raw)
     except ValidationError as exc:
         raise RobotSpecError(f"invalid robot spec {path}:\n{exc}") from exc
+
+
+def configured_robot_spec(conf: StackConfig) -> RobotSpec:
+    """The robot description named by ``robot.spec``, with ``robot.model`` overriding its model."""
+    spec = load_robot_spec(resolve_config_path(conf.robot.spec, CONFIG_DIR))
+    return spec.with_model(resolve_config_path(conf.robot.model, CONFIG_DIR)) if conf.robot.model else spec

@@ -11,8 +11,8 @@ from services.safety.filter import FilterParams, SafetyFilter
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import PairSet, preset_pair_set
 from services.safety.retarget import Retargeter
-from shared.config import CONFIG_DIR, StackConfig, resolve_config_path
-from shared.robot_spec import RobotSpec, load_robot_spec
+from shared.config import StackConfig
+from shared.robot_spec import RobotSpec, configured_robot_spec
 
 
 @dataclass
@@ -25,14 +25,6 @@ class SafetyPipeline:
     barrier: CapsuleBarrier
     filter: SafetyFilter
     retargeter: Retargeter
-
-
-def load_spec(conf: StackConfig) -> RobotSpec:
-    """The robot description named by ``robot.spec``, with ``robot.model`` overriding its model."""
-    spec = load_robot_spec(resolve_config_path(conf.robot.spec, CONFIG_DIR))
-    if conf.robot.model:
-        spec = spec.model_copy(update={"model": str(resolve_config_path(conf.robot.model, CONFIG_DIR))})
-    return spec
 
 
 def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinematics) -> Retargeter:
@@ -51,7 +43,7 @@ def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinemat
 
 def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics: RobotKinematics | None = None) -> SafetyPipeline:
     """Assemble the safety pipeline for ``conf`` (optionally another pair preset / shared kinematics)."""
-    spec = load_spec(conf) if kinematics is None else kinematics.spec
+    spec = configured_robot_spec(conf) if kinematics is None else kinematics.spec
     kinematics = kinematics or RobotKinematics(spec)
     pairs = preset_pair_set(pair_preset or conf.safety.pairs, [tuple(p) for p in spec.self_pairs])
     barrier = CapsuleBarrier(pairs, kinematics.radii, len(kinematics.joint_names))

@@ -1,0 +1,3 @@
+from services.executor.service import cli
+
+cli()

@@ -1,0 +1,318 @@
+"""``safemimic executor``: the robot end of the bus (DESIGN §1, §5).
+
+Subscribes to ``robot/command`` (:class:`~shared.messages.JointCommand`) and ``human/state``
+(:class:`~shared.messages.HumanState`), drives an :class:`~services.executor.interface.Executor`
+(here the MuJoCo simulation) at ``executor.rate_hz`` in real time and publishes
+``robot/joint_state`` (:class:`~shared.messages.JointState`) at ``executor.state_rate_hz``.
+Holds the liveliness token ``alive/executor``.
+
+Every tick:
+
+1. the newest command, if younger than ``executor.command_timeout_s`` (local receive time:
+   stamps of other hosts' monotonic clocks are not comparable), becomes the servo target with its
+   velocity as feed-forward. An older one makes the robot hold the last commanded position with
+   zero velocity: counted per tick (``stale_ticks``) and per episode (``command_timeouts``).
+   Before the first command the robot holds home;
+2. a new human state (robot frame only; others are dropped and counted) moves the person's
+   capsules in the simulation; the last one stays while none arrives;
+3. one control period of physics, then the contacts of that step are tallied (robot–robot and
+   robot–human, DESIGN §10) into the counters logged every ``executor.stats_interval_s`` and
+   returned by :func:`main`.
+
+Ticks are scheduled at absolute times and the thread sleeps on a ``threading.Event`` between them,
+never spinning (DESIGN §8). A tick that starts a whole period late counts the skipped slots as
+deadline misses and keeps the schedule's phase (simulated time then lags wall time by as much).
+Undecodable or invalid payloads are dropped and counted by the bus, never reach the robot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.executor.contacts import ContactTally
+from services.executor.interface import Executor
+from services.executor.mujoco_executor import MujocoExecutor
+from services.executor.sim import PDGains, SimModelError
+from shared.bus import Bus, Latest, Received
+from shared.cli_args import add_bus_arguments, config_from_args
+from shared.config import ConfigError, StackConfig
+from shared.messages import HumanState, JointCommand, JointState
+from shared.robot_spec import RobotSpecError, configured_robot_spec
+
+log = logging.getLogger("safemimic.executor")
+
+SERVICE_NAME = "executor"
+#: The frame HumanState capsules must be expressed in (the robot frame, z up, floor at 0).
+HUMAN_FRAME = "robot"
+#: Tick compute times kept for the percentiles (a ring buffer: 20 s at 500 Hz).
+_TICK_TIME_WINDOW = 10_000
+#: Unexpected exceptions in consecutive ticks after which the service gives up (a bug, not noise).
+_MAX_CONSECUTIVE_ERRORS = 100
+
+
+class ExecutorService:
+    """The executor service's state and one control tick; :meth:`run` drives it in real time.
+
+    ``executor`` defaults to a :class:`~services.executor.mujoco_executor.MujocoExecutor` of the
+    configured robot; ``bus`` to a new :class:`~shared.bus.Bus` from ``conf.bus`` (closed by
+    :meth:`close`). The executor is started here and stopped by :meth:`close`.
+    """
+
+    def __init__(self, conf: StackConfig, executor: Executor | None = None, bus: Bus | None = None) -> None:
+        self.conf = conf
+        c = conf.executor
+        self.executor = executor or MujocoExecutor(configured_robot_spec(conf), PDGains.from_config(c), 1.0 / c.rate_hz, c.viewer)
+        n = len(self.executor.joint_names)
+        self.ticks = 0
+        self.deadline_misses = 0
+        self.max_late_s = 0.0
+        self.tick_errors = 0
+        self.commands_applied = 0
+        self.clipped_commands = 0
+        self.stale_ticks = 0
+        self.command_timeouts = 0
+        self.human_updates = 0
+        self.tally = ContactTally()
+        self._tick_times = np.zeros(_TICK_TIME_WINDOW)
+        self._target = self.executor.q_home
+        self._zero = np.zeros(n)
+        self._applied: Received[JointCommand] | None = None
+        self._human_seen: Received[HumanState] | None = None
+        self._stale = False
+        self._next_state = -math.inf
+        self._rejected: Counter[str] = Counter()
+        self.command: Latest[JointCommand] = Latest()
+        self.human: Latest[HumanState] = Latest()
+
+        self._owns_bus = bus is None
+        self.executor.start()
+        try:
+            self.bus = bus if bus is not None else Bus(conf.bus, conf.robot_id, SERVICE_NAME)
+            self._state_pub = self.bus.publisher("robot/joint_state")
+            self.bus.subscribe("robot/command", self.command.set)
+            self.bus.subscribe("human/state", self.on_human)
+            self.bus.declare_alive(SERVICE_NAME)
+        except Exception:
+            self.executor.stop()
+            raise
+
+    # lifecycle -----------------------------------------------------------------------------
+    def __enter__(self) -> ExecutorService:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.executor.stop()
+        if self._owns_bus:
+            self.bus.close()
+
+    @property
+    def period(self) -> float:
+        """The control period (s)."""
+        return 1.0 / self.conf.executor.rate_hz
+
+    # subscriber callback (Zenoh threads) ----------------------------------------------------
+    def on_human(self, message: HumanState) -> None:
+        if message.frame_id != HUMAN_FRAME:  # capsules in an unknown frame must not reach the scene
+            self._rejected["human/state"] += 1
+            if self._rejected["human/state"] == 1:
+                log.warning("dropping HumanStates in frame %r (expected %r)", message.frame_id, HUMAN_FRAME)
+            return
+        self.human.set(message)
+
+    # control tick (the loop's thread) -------------------------------------------------------
+    def tick(self, now: float) -> None:
+        """One control period at monotonic time ``now``: command → human → physics → state."""
+        started = time.perf_counter()
+        self._apply_command(now)
+        received = self.human.get()
+        if received is not None and received is not self._human_seen:
+            m = received.message
+            self.executor.set_human(m.capsules, m.capsule_radii, m.capsule_valid)
+            self._human_seen = received
+            self.human_updates += 1
+        self.executor.tick()
+        report = self.executor.contacts()
+        if report is not None:
+            self.tally.update(report)
+        if now >= self._next_state:
+            reading = self.executor.read_state()
+            self._state_pub.put(JointState(stamp=now, q=reading.q, dq=reading.dq))
+            state_period = 1.0 / self.conf.executor.state_rate_hz
+            self._next_state = max(self._next_state + state_period, now + 0.5 * state_period)
+        self._tick_times[self.ticks % _TICK_TIME_WINDOW] = time.perf_counter() - started
+        self.ticks += 1
+
+    def _apply_command(self, now: float) -> None:
+        received = self.command.get()
+        if received is None:
+            return  # no command yet: the executor holds home
+        if now - received.received <= self.conf.executor.command_timeout_s:
+            if received is not self._applied:
+                message = received.message
+                self._target = self.executor.apply_command(message.q, message.dq)
+                self.clipped_commands += int(not np.array_equal(self._target, message.q))
+                self.commands_applied += 1
+                self._applied = received
+                if self._stale:
+                    log.info("commands resumed after %d stale ticks so far", self.stale_ticks)
+                self._stale = False
+            return
+        if not self._stale:
+            self.command_timeouts += 1
+            self._stale = True
+            self.executor.apply_command(self._target, self._zero)
+            log.warning("newest command is %.3f s old (timeout %.3f s): holding the last commanded position",
+                        now - received.received, self.conf.executor.command_timeout_s)
+        self.stale_ticks += 1
+
+    def dropped(self) -> dict[str, int]:
+        """Invalid or refused messages per topic: undecodable, failing callbacks, rejected."""
+        total = Counter(self.bus.dropped)
+        total.update(self.bus.callback_errors)
+        total.update(self._rejected)
+        return {topic: int(count) for topic, count in total.items() if count}
+
+    # the loop --------------------------------------------------------------------------------
+    def run(self, stop: threading.Event, duration: float | None = None) -> dict[str, Any]:
+        """Tick at ``executor.rate_hz`` until ``stop`` is set (or ``duration`` s passed); counters."""
+        c = self.conf.executor
+        log.info("executor started: %.0f Hz, joint state at %.0f Hz, command timeout %.3f s, robot_id %s, bus %s",
+                 c.rate_hz, c.state_rate_hz, c.command_timeout_s, self.conf.robot_id, self.conf.bus.mode.value)
+        period = self.period
+        begin = time.monotonic()
+        end = math.inf if duration is None else begin + duration
+        next_stats = begin + c.stats_interval_s
+        k, consecutive_errors = 0, 0
+        while not stop.is_set():
+            due = begin + k * period
+            now = time.monotonic()
+            if now < due:
+                if stop.wait(min(due, end) - now):
+                    break
+                now = time.monotonic()
+            if now >= end:
+                break
+            late = now - due
+            self.max_late_s = max(self.max_late_s, late)
+            if late >= period:  # whole slots passed: count them, keep the phase
+                skipped = int(late // period)
+                self.deadline_misses += skipped
+                k += skipped
+            try:
+                self.tick(now)
+                consecutive_errors = 0
+            except Exception:
+                self.tick_errors += 1
+                consecutive_errors += 1
+                if consecutive_errors == 1 or self.tick_errors <= 10:
+                    log.exception("executor tick failed (%d so far)", self.tick_errors)
+                if consecutive_errors >= _MAX_CONSECUTIVE_ERRORS:
+                    raise
+            k += 1
+            if now >= next_stats:
+                log.info("%s", self.summary_line(now - begin))
+                next_stats += c.stats_interval_s
+        counters = self.counters(time.monotonic() - begin)
+        log.info("executor stopped: %s", self.summary_line(counters["elapsed_s"]))
+        return counters
+
+    def summary_line(self, elapsed_s: float) -> str:
+        """One line: rate, commands, staleness, human updates, drops, contacts."""
+        hz = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
+        return (
+            f"{self.ticks} ticks ({hz:.1f} Hz), {self.deadline_misses} misses, {self.commands_applied} commands "
+            f"({self.clipped_commands} clipped), {self.stale_ticks} stale ticks in {self.command_timeouts} timeouts, "
+            f"{self.human_updates} human updates, dropped {self.dropped()}, {self.tally.line()}"
+        )
+
+    def counters(self, elapsed_s: float | None = None) -> dict[str, Any]:
+        """Counters so far (JSON-ready): ticks, timing, commands, staleness, drops, contacts."""
+        n = min(self.ticks, _TICK_TIME_WINDOW)
+        tick_us = self._tick_times[:n] * 1e6 if n else np.zeros(1)
+        out: dict[str, Any] = {
+            "ticks": self.ticks,
+            "rate_hz": self.conf.executor.rate_hz,
+            "deadline_misses": self.deadline_misses,
+            "max_late_ms": self.max_late_s * 1e3,
+            "tick_p50_us": float(np.percentile(tick_us, 50)),
+            "tick_p99_us": float(np.percentile(tick_us, 99)),
+            "tick_errors": self.tick_errors,
+            "commands_received": self.command.count,
+            "commands_applied": self.commands_applied,
+            "clipped_commands": self.clipped_commands,
+            "stale_ticks": self.stale_ticks,
+            "command_timeouts": self.command_timeouts,
+            "human_updates": self.human_updates,
+            "dropped": self.dropped(),
+            "contacts": self.tally.summary(),
+        }
+        if elapsed_s is not None:
+            out["elapsed_s"] = elapsed_s
+            out["achieved_hz"] = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
+        return out
+
+
+def main(conf: StackConfig, stop: threading.Event, duration: float | None = None) -> dict[str, Any]:
+    """Run the executor service (MuJoCo) until ``stop`` is set or ``duration`` s passed; counters."""
+    with ExecutorService(conf) as service:
+        return service.run(stop, duration)
+
+
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    parser = parser or argparse.ArgumentParser(prog="safemimic executor")
+    parser.description = (
+        "Run the executor: a MuJoCo simulation of the robot (pelvis welded) that follows JointCommands "
+        "at executor.rate_hz in real time, holds the last position when commands stop, shows the "
+        "person's capsules from HumanState, counts robot-robot and robot-human contacts and publishes "
+        "JointState at executor.state_rate_hz. Headless unless --viewer."
+    )
+    add_bus_arguments(parser)
+    parser.add_argument("--robot-model", metavar="PATH",
+                        help="MJCF of the robot to simulate instead of the robot description's "
+                        "(e.g. Menagerie's unitree_g1/g1.xml with meshes)")
+    parser.add_argument("--viewer", action="store_true",
+                        help="open MuJoCo's passive viewer (needs a display; otherwise a warning and headless)")
+    parser.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this many seconds")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    extra: dict[str, Any] = {}
+    if args.robot_model:
+        extra["robot"] = {"model": str(Path(args.robot_model).expanduser().resolve())}
+    if args.viewer:
+        extra["executor"] = {"viewer": True}
+    if args.duration is not None and not args.duration > 0:
+        print("--duration must be > 0", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        conf = config_from_args(args, extra)
+        counters = main(conf, stop, args.duration)
+    except (ConfigError, RobotSpecError, SimModelError) as exc:
+        print(f"safemimic executor: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps({"event": "stopped", "service": SERVICE_NAME, **counters}), flush=True)
+    return 0
+
+
+def cli(argv: list[str] | None = None) -> None:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    sys.exit(run(build_parser().parse_args(argv)))

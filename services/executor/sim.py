@@ -1,0 +1,445 @@
+"""MuJoCo simulation of the robot with the person in its world (DESIGN §1, §7, §10).
+
+:class:`SimRobot` is the simulation core shared by the executor service and the offline
+evaluator: no Zenoh, no clock, deterministic for the same calls.
+
+The model is the robot spec's MJCF (our mesh-free G1-class model by default, or another one such
+as Menagerie's G1 with meshes), edited with ``mujoco.MjSpec`` before compiling:
+
+- **welded base**: the base body's joints (the free joint) are removed and the body is placed at
+  ``(0, 0, base_height)`` with identity orientation, so the world frame is the robot frame of
+  DESIGN §3 (x forward, y left, z up, floor at z = 0). The robot's own balance controller holds
+  the lower body in the paper; here the pelvis is simply fixed;
+- **joint servos**: the model's actuators and sensors are replaced by one position servo per joint
+  (torque = kp (q_ref − q) − kd q̇, limited by the joint's ``actuatorfrcrange``). The 8 imitation
+  joints use ``kp``/``kd`` and follow :meth:`SimRobot.set_command`; a velocity feed-forward makes
+  it kp (q_ref − q) + kd (q̇_ref − q̇). Every other joint is held at its home angle with
+  ``hold_kp``/``hold_kd``. Optional gravity compensation goes through the same servos
+  (MuJoCo ``gravcomp`` + ``actuatorgravcomp``), so it respects the torque limits too;
+- **the person**: 7 mocap bodies, one capsule geom each (CAPSULE_NAMES order, contype 2,
+  conaffinity 1: they touch the robot, not each other; geom group 4). Their pose, length and
+  radius follow :meth:`SimRobot.set_human`; the capsule's size is changed in the compiled model
+  together with its bounding sphere and boxes (the geom's and its body's BVH root), without which
+  the broad phase would miss contacts;
+- **adjacent links**: MuJoCo ignores parent–child contacts except when the parent is welded to
+  the world, so each static body (the welded base and whatever hangs on it without a joint) gets
+  an explicit exclusion with each jointed child;
+- **home contacts**: robot–robot pairs already in contact at the home pose are excluded too and
+  listed in :attr:`SimRobot.home_contacts`.
+
+MuJoCo reports no contact between two bodies that both lack degrees of freedom (DESIGN §10): a
+mocap capsule never touches the welded pelvis in ``mjData.contact``. :meth:`SimRobot.contacts`
+therefore adds ``mj_geomDistance`` between every placed human capsule and every static robot
+collision geom. Units SI: metres, radians, seconds, newton-metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from services.executor.contacts import BodyContact, ContactReport
+from shared.config import ExecutorConfig
+from shared.names import CAPSULE_NAMES
+from shared.robot_spec import RobotSpec
+
+__all__ = [
+    "HUMAN_CONAFFINITY",
+    "HUMAN_CONTYPE",
+    "HUMAN_GEOM_GROUP",
+    "PDGains",
+    "SimModelError",
+    "SimRobot",
+    "human_body_name",
+]
+
+#: Contact bits of the human capsules (the robot MJCF's convention: robot geoms are 1/1).
+HUMAN_CONTYPE = 2
+HUMAN_CONAFFINITY = 1
+#: Geom group of the human capsules (robot visuals are group 2, robot collision geoms group 3).
+HUMAN_GEOM_GROUP = 4
+_HUMAN_RGBA = (0.95, 0.7, 0.55, 0.5)
+#: Capsule endpoints farther than this from the robot (m) are treated as invalid.
+MAX_HUMAN_COORD = 100.0
+#: Where unused human capsules wait (m): far below the floor, out of every contact.
+_PARK = np.array([0.0, 0.0, -1000.0])
+#: Smallest radius / half-length given to a human capsule (m): MuJoCo needs positive sizes.
+_MIN_SIZE = 1e-4
+_SERVO_PREFIX = "servo_"
+_ROBOT, _HUMAN = 1, 2
+
+
+class SimModelError(ValueError):
+    """The robot model cannot be loaded or does not fit the robot spec (message says why)."""
+
+
+@dataclass(frozen=True)
+class PDGains:
+    """Joint servo gains (kp in N·m/rad, kd in N·m·s/rad): ``kp``/``kd`` for the imitation joints,
+    ``hold_kp``/``hold_kd`` for the joints held at home, ``per_joint`` overriding either by name."""
+
+    kp: float
+    kd: float
+    hold_kp: float
+    hold_kd: float
+    per_joint: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    gravity_compensation: bool = True
+
+    @classmethod
+    def from_config(cls, conf: ExecutorConfig) -> PDGains:
+        return cls(conf.kp, conf.kd, conf.hold_kp, conf.hold_kd, dict(conf.joint_gains), conf.gravity_compensation)
+
+    def of(self, joint: str, imitation: bool) -> tuple[float, float]:
+        """(kp, kd) of ``joint``; ``imitation``: whether it is one of the 8 imitation joints."""
+        default = (self.kp, self.kd) if imitation else (self.hold_kp, self.hold_kd)
+        return self.per_joint.get(joint, default)
+
+
+def human_body_name(capsule: str) -> str:
+    """Name of the mocap body (and of its geom) carrying human capsule ``capsule``."""
+    return f"human_{capsule}"
+
+
+# ----------------------------------------------------------------------------- model building
+def _load_spec(spec: RobotSpec) -> mujoco.MjSpec:
+    path = spec.model_path
+    if not path.is_file():
+        raise SimModelError(f"robot model {path} does not exist")
+    try:
+        return mujoco.MjSpec.from_file(str(path))
+    except Exception as exc:  # mujoco raises ValueError with the parser's message
+        raise SimModelError(f"cannot load robot model {path}: {exc}") from exc
+
+
+def _compile(mjs: mujoco.MjSpec, origin: str) -> mujoco.MjModel:
+    try:
+        return mjs.compile()
+    except Exception as exc:
+        raise SimModelError(f"cannot compile robot model {origin}: {exc}") from exc
+
+
+def _static_group(base: mujoco.MjsBody) -> list[mujoco.MjsBody]:
+    """The base and every body rigidly attached to it (reached without crossing a joint)."""
+    group, todo = [], [base]
+    while todo:
+        body = todo.pop()
+        group.append(body)
+        todo.extend(child for child in body.bodies if not child.joints)
+    return group
+
+
+def _weld_base(mjs: mujoco.MjSpec, spec: RobotSpec) -> mujoco.MjsBody:
+    """Remove the base's joints, fix it at base_height, exclude the static group's child links;
+    returns the base body (the robot is its subtree)."""
+    base = mjs.body(spec.base_body)
+    if base is None:
+        raise SimModelError(f"robot model {spec.model} has no base body {spec.base_body!r}")
+    if base.parent is None or base.parent.name != mjs.worldbody.name:
+        raise SimModelError(f"base body {spec.base_body!r} must be a child of the world body")
+    for joint in list(base.joints):
+        mjs.delete(joint)
+    base.pos = [0.0, 0.0, spec.base_height]
+    base.quat = [1.0, 0.0, 0.0, 0.0]
+    excluded = {frozenset((e.bodyname1, e.bodyname2)) for e in mjs.excludes}
+    for body in _static_group(base):
+        for child in body.bodies:
+            if child.joints and frozenset((body.name, child.name)) not in excluded:
+                mjs.add_exclude(bodyname1=body.name, bodyname2=child.name)
+    return base
+
+
+def _add_servos(mjs: mujoco.MjSpec, base: mujoco.MjsBody, spec: RobotSpec, gains: PDGains) -> None:
+    """Replace actuators (and the sensors that may refer to them) by one position servo per robot
+    joint (the base's subtree); gravity compensation on the robot's bodies if asked."""
+    for element in [*mjs.actuators, *mjs.sensors, *mjs.keys]:  # keys: qpos sizes change with the weld
+        mjs.delete(element)
+    imitation = set(spec.imitation_joints)
+    joints = base.find_all(mujoco.mjtObj.mjOBJ_JOINT)
+    unknown = sorted(set(gains.per_joint) - {joint.name for joint in joints})
+    if unknown:
+        raise SimModelError(f"servo gains are given for joints the robot model lacks: {unknown}")
+    for joint in joints:
+        if joint.type not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+            raise SimModelError(f"joint {joint.name!r} is not a hinge or slide joint: no servo can hold it")
+        if not joint.name:
+            raise SimModelError("the robot model has an unnamed joint")
+        kp, kd = gains.of(joint.name, joint.name in imitation)
+        servo = mjs.add_actuator(name=_SERVO_PREFIX + joint.name, target=joint.name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        servo.set_to_position(kp=kp, kv=kd)
+        servo.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        joint.actgravcomp = gains.gravity_compensation
+    if gains.gravity_compensation:
+        for body in [base, *base.find_all(mujoco.mjtObj.mjOBJ_BODY)]:
+            body.gravcomp = 1.0
+
+
+def _add_human(mjs: mujoco.MjSpec) -> None:
+    for capsule in CAPSULE_NAMES:
+        body = mjs.worldbody.add_body(name=human_body_name(capsule), mocap=True, pos=_PARK.tolist())
+        body.add_geom(
+            name=human_body_name(capsule),
+            type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+            size=[0.05, 0.1, 0.0],
+            contype=HUMAN_CONTYPE,
+            conaffinity=HUMAN_CONAFFINITY,
+            group=HUMAN_GEOM_GROUP,
+            rgba=list(_HUMAN_RGBA),
+        )
+
+
+def _home_qpos(model: mujoco.MjModel, spec: RobotSpec) -> np.ndarray:
+    """Full qpos at home: spec.home values, every other joint at 0 (every joint is 1-DoF here)."""
+    qpos = np.zeros(model.nq)
+    for name, value in spec.home.items():
+        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if jid < 0:
+            raise SimModelError(f"home names joint {name!r}, which robot model {spec.model} lacks")
+        lo, hi = model.jnt_range[jid]
+        if model.jnt_limited[jid] and not lo - 1e-9 <= value <= hi + 1e-9:
+            raise SimModelError(f"home[{name!r}] = {value} lies outside the joint range [{lo}, {hi}]")
+        qpos[model.jnt_qposadr[jid]] = value
+    return qpos
+
+
+def _robot_pairs_in_contact(model: mujoco.MjModel, qpos: np.ndarray, robot_body: np.ndarray) -> list[tuple[str, str]]:
+    """Robot–robot body pairs in contact at ``qpos`` (names, each pair sorted)."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_forward(model, data)
+    pairs = set()
+    for g1, g2 in data.contact.geom[: data.ncon]:
+        b1, b2 = model.geom_bodyid[g1], model.geom_bodyid[g2]
+        if robot_body[b1] and robot_body[b2]:
+            pairs.add(tuple(sorted((model.body(b1).name, model.body(b2).name))))
+    return sorted(pairs)
+
+
+# ----------------------------------------------------------------------------- the simulation
+class SimRobot:
+    """The welded robot, its joint servos and the person's capsules in one MuJoCo model.
+
+    Args:
+        spec: the robot description (model file, base body and height, imitation joints, home).
+        gains: servo gains of the imitation and held joints.
+        timestep: physics step (s); None keeps the model's ``<option timestep>``.
+
+    Raises:
+        SimModelError: the model is missing, does not compile, or lacks a joint/body the spec names.
+    """
+
+    def __init__(self, spec: RobotSpec, gains: PDGains, timestep: float | None = None) -> None:
+        self.spec = spec
+        self.gains = gains
+        mjs = _load_spec(spec)
+        missing = [j for j in spec.imitation_joints if mjs.joint(j) is None]
+        if missing:
+            raise SimModelError(f"robot model {spec.model} lacks the imitation joints {missing}")
+        base = _weld_base(mjs, spec)
+        _add_servos(mjs, base, spec, gains)
+        _add_human(mjs)
+        if timestep is not None:
+            if not 0 < timestep <= 0.05:
+                raise SimModelError(f"physics timestep {timestep} s is outside (0, 0.05]")
+            mjs.option.timestep = timestep
+        model = _compile(mjs, spec.model)
+        robot_body = model.body_rootid == model.body(spec.base_body).id  # the base's subtree
+        self._qpos_home = _home_qpos(model, spec)
+        #: Robot–robot body pairs touching at home: excluded from contacts (and from physics).
+        self.home_contacts: tuple[tuple[str, str], ...] = tuple(
+            _robot_pairs_in_contact(model, self._qpos_home, robot_body)
+        )
+        if self.home_contacts:
+            for a, b in self.home_contacts:
+                mjs.add_exclude(bodyname1=a, bodyname2=b)
+            model = _compile(mjs, spec.model)
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self._index(robot_body)
+        self.reset()
+        # static geoms never move: their world positions and bounding radii, once
+        self._static_pos = self.data.geom_xpos[self.static_geoms].copy()
+        self._static_rbound = self.model.geom_rbound[self.static_geoms].copy()
+
+    def _index(self, robot_body: np.ndarray) -> None:
+        m = self.model
+        jids = [m.joint(name).id for name in self.spec.imitation_joints]
+        self.joint_names: tuple[str, ...] = tuple(self.spec.imitation_joints)
+        self._qadr = m.jnt_qposadr[jids].copy()
+        self._dadr = m.jnt_dofadr[jids].copy()
+        self._act = np.array([m.actuator(_SERVO_PREFIX + name).id for name in self.joint_names])
+        limited = m.jnt_limited[jids].astype(bool)
+        #: Joint ranges of the imitation joints (rad); commands are clipped to them.
+        self.q_min = np.where(limited, m.jnt_range[jids, 0], -np.inf)
+        self.q_max = np.where(limited, m.jnt_range[jids, 1], np.inf)
+        #: Home angles of the imitation joints (rad).
+        self.q_home = self._qpos_home[self._qadr].copy()
+        # ctrl at home: each servo's joint angle at home (every joint is 1-DoF: qposadr = its index)
+        self._ctrl_home = self._qpos_home[m.jnt_qposadr[m.actuator_trnid[:, 0]]].copy()
+        # velocity feed-forward folded into the servo's ctrl: kp (q_ref + kd/kp q̇_ref − q) − kd q̇
+        self._ff = np.array([kd / kp for kp, kd in (self.gains.of(j, True) for j in self.joint_names)])
+
+        self._body_names = [m.body(b).name for b in range(m.nbody)]
+        collides = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
+        self._role = np.where(robot_body[m.geom_bodyid] & collides, _ROBOT, 0).astype(np.int8)
+        self._human_geom = np.array([m.geom(human_body_name(c)).id for c in CAPSULE_NAMES])
+        human_bodies = [m.body(human_body_name(c)).id for c in CAPSULE_NAMES]
+        self._human_mocap = m.body_mocapid[human_bodies].copy()
+        self._human_bvh = m.body_bvhadr[human_bodies].copy()  # each body's one-node BVH: its geom's box
+        self._role[self._human_geom] = _HUMAN
+        self._capsule_of_geom = {int(g): c for g, c in zip(self._human_geom, CAPSULE_NAMES)}
+        static = (self._role == _ROBOT) & (m.body_weldid[m.geom_bodyid] == 0)
+        #: Robot collision geoms on bodies without degrees of freedom (welded to the world).
+        self.static_geoms = np.flatnonzero(static)
+        self._human_placed = np.zeros(len(CAPSULE_NAMES), dtype=bool)
+
+    # ------------------------------------------------------------------------- state
+    def reset(self) -> None:
+        """Back to time 0: every joint at home and still, servos at home, the person removed."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = self._qpos_home
+        self.data.ctrl[:] = self._ctrl_home
+        self.clear_human()
+        mujoco.mj_forward(self.model, self.data)
+
+    @property
+    def timestep(self) -> float:
+        """Physics step (s)."""
+        return float(self.model.opt.timestep)
+
+    @property
+    def time(self) -> float:
+        """Simulated time since :meth:`reset` (s)."""
+        return float(self.data.time)
+
+    @property
+    def q(self) -> np.ndarray:
+        """Imitation joint angles (rad), ``joint_names`` order (a copy)."""
+        return self.data.qpos[self._qadr].copy()
+
+    @property
+    def dq(self) -> np.ndarray:
+        """Imitation joint velocities (rad/s), ``joint_names`` order (a copy)."""
+        return self.data.qvel[self._dadr].copy()
+
+    # ------------------------------------------------------------------------- inputs
+    def set_command(self, q: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
+        """Servo the imitation joints to ``q`` (rad) with velocity feed-forward ``dq`` (rad/s).
+
+        ``q`` is clipped to the joint ranges; returns the target actually applied.
+        Raises ValueError for a wrong shape or a non-finite value.
+        """
+        q = np.asarray(q, dtype=float)
+        dq = np.zeros_like(q) if dq is None else np.asarray(dq, dtype=float)
+        n = len(self.joint_names)
+        if q.shape != (n,) or dq.shape != (n,):
+            raise ValueError(f"q and dq must have shape ({n},), got {q.shape} and {dq.shape}")
+        if not (np.isfinite(q).all() and np.isfinite(dq).all()):
+            raise ValueError("q and dq must be finite")
+        target = np.clip(q, self.q_min, self.q_max)
+        self.data.ctrl[self._act] = target + self._ff * dq
+        return target
+
+    def set_human(self, capsules: np.ndarray, radii: np.ndarray, valid: np.ndarray) -> None:
+        """Place the person's capsules: ``capsules[i] = (a_i, b_i)`` in the world/robot frame (m),
+        radius ``radii[i]`` (m), used where ``valid[i]``; the others (and any with a non-finite or
+        implausibly far endpoint) are parked far away. Takes effect at the next :meth:`step`."""
+        capsules = np.asarray(capsules, dtype=float)
+        radii = np.asarray(radii, dtype=float)
+        valid = np.asarray(valid, dtype=bool)
+        n = len(CAPSULE_NAMES)
+        if capsules.shape != (n, 2, 3) or radii.shape != (n,) or valid.shape != (n,):
+            raise ValueError(f"expected capsules ({n}, 2, 3), radii ({n},), valid ({n},); got "
+                             f"{capsules.shape}, {radii.shape}, {valid.shape}")
+        usable = (
+            valid
+            & np.isfinite(capsules).all(axis=(1, 2))
+            & (np.abs(np.nan_to_num(capsules, nan=np.inf)) <= MAX_HUMAN_COORD).all(axis=(1, 2))
+            & np.isfinite(radii)
+            & (radii >= 0)
+        )
+        for i in range(n):
+            if usable[i]:
+                self._place(i, capsules[i, 0], capsules[i, 1], float(radii[i]))
+            else:
+                self._park(i)
+        self._human_placed = usable
+
+    def clear_human(self) -> None:
+        """Remove the person from the scene (every capsule parked)."""
+        for i in range(len(CAPSULE_NAMES)):
+            self._park(i)
+        self._human_placed = np.zeros(len(CAPSULE_NAMES), dtype=bool)
+
+    def _place(self, i: int, a: np.ndarray, b: np.ndarray, radius: float) -> None:
+        axis = b - a
+        length = float(np.linalg.norm(axis))
+        quat = np.array([1.0, 0.0, 0.0, 0.0])
+        if length > _MIN_SIZE:
+            mujoco.mju_quatZ2Vec(quat, axis / length)
+        self._shape(i, max(radius, _MIN_SIZE), max(0.5 * length, _MIN_SIZE))
+        self.data.mocap_pos[self._human_mocap[i]] = 0.5 * (a + b)
+        self.data.mocap_quat[self._human_mocap[i]] = quat
+
+    def _park(self, i: int) -> None:
+        self._shape(i, _MIN_SIZE, _MIN_SIZE)
+        self.data.mocap_pos[self._human_mocap[i]] = _PARK
+        self.data.mocap_quat[self._human_mocap[i]] = (1.0, 0.0, 0.0, 0.0)
+
+    def _shape(self, i: int, radius: float, half_length: float) -> None:
+        """Resize human capsule geom i, with the bounding sphere and boxes the collision phases use
+        (the geom's and its body's BVH root: the geom sits at the body origin, unrotated)."""
+        g = self._human_geom[i]
+        box = (0.0, 0.0, 0.0, radius, radius, radius + half_length)
+        self.model.geom_size[g, :2] = radius, half_length
+        self.model.geom_rbound[g] = radius + half_length
+        self.model.geom_aabb[g] = box
+        if self._human_bvh[i] >= 0:
+            self.model.bvh_aabb[self._human_bvh[i]] = box
+
+    # ------------------------------------------------------------------------- physics
+    def step(self, n: int = 1) -> None:
+        """Advance the physics by ``n`` steps of :attr:`timestep`."""
+        mujoco.mj_step(self.model, self.data, nstep=n)
+
+    def contacts(self) -> ContactReport:
+        """Body pairs in contact at the last step: MuJoCo's contact list (robot–robot and
+        robot–human) plus ``mj_geomDistance`` between placed human capsules and static robot geoms."""
+        m, d = self.model, self.data
+        robot_robot: dict[tuple[str, str], float] = {}
+        robot_human: dict[tuple[str, str], float] = {}
+        names = self._body_names
+        for (g1, g2), dist in zip(d.contact.geom[: d.ncon], d.contact.dist[: d.ncon]):
+            if dist >= 0.0:
+                continue
+            r1, r2 = self._role[g1], self._role[g2]
+            if r1 == _ROBOT and r2 == _ROBOT:
+                pair = tuple(sorted((names[m.geom_bodyid[g1]], names[m.geom_bodyid[g2]])))
+                robot_robot[pair] = max(robot_robot.get(pair, 0.0), -float(dist))
+            elif {r1, r2} == {_ROBOT, _HUMAN}:
+                robot_g, human_g = (g1, g2) if r1 == _ROBOT else (g2, g1)
+                pair = (names[m.geom_bodyid[robot_g]], self._capsule_of_geom[int(human_g)])
+                robot_human[pair] = max(robot_human.get(pair, 0.0), -float(dist))
+        self._static_contacts(robot_human)
+        return ContactReport(
+            robot_robot=tuple(sorted(BodyContact(a, b, depth) for (a, b), depth in robot_robot.items())),
+            robot_human=tuple(sorted(BodyContact(a, b, depth) for (a, b), depth in robot_human.items())),
+        )
+
+    def _static_contacts(self, found: dict[tuple[str, str], float]) -> None:
+        """Add penetrations between placed human capsules and static robot geoms to ``found``."""
+        if not self._human_placed.any() or not len(self.static_geoms):
+            return
+        m, d = self.model, self.data
+        humans = self._human_geom[self._human_placed]
+        # bounding-sphere test first: mj_geomDistance itself has no broad phase
+        gap = np.linalg.norm(d.geom_xpos[humans, None, :] - self._static_pos[None, :, :], axis=2)
+        near = gap <= m.geom_rbound[humans, None] + self._static_rbound[None, :]
+        for hi, si in zip(*np.nonzero(near)):
+            h, s = int(humans[hi]), int(self.static_geoms[si])
+            dist = mujoco.mj_geomDistance(m, d, s, h, 0.0, None)
+            if dist < 0.0:
+                pair = (self._body_names[m.geom_bodyid[s]], self._capsule_of_geom[h])
+                found[pair] = max(found.get(pair, 0.0), -dist)

@@ -1,0 +1,168 @@
+"""`safemimic executor` as a real process over real Zenoh on 127.0.0.1 (peer mode, explicit
+endpoints, multicast off). This test process plays the safety service (JointCommand) and
+perception (HumanState) and listens to JointState; the service's final counters come as one JSON
+line when it is stopped with SIGTERM."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from shared.bus import Bus
+from shared.codec import encode
+from shared.config import BusConfig
+from shared.messages import HumanState, JointCommand, JointState
+from shared.names import CAPSULE_NAMES
+from shared.robot_spec import default_robot_spec_path, load_robot_spec
+from tests.conftest import G1_MJCF, free_port
+from tests.test_bus import AliveWatcher
+
+pytestmark = pytest.mark.integration
+
+SPEC = load_robot_spec(default_robot_spec_path())
+Q_HOME = np.array([SPEC.home.get(j, 0.0) for j in SPEC.imitation_joints])
+STEP = np.array([0.2, 0.2, -0.4, 0.3, -0.4, -0.4, -0.3, -0.4])  # arms out and forward: collision-free
+TORSO = CAPSULE_NAMES.index("torso")
+
+
+class StateLog:
+    """Every JointState received, with the local receive time."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.states: list[tuple[float, JointState]] = []
+
+    def __call__(self, message: JointState) -> None:
+        with self.lock:
+            self.states.append((time.monotonic(), message))
+
+    def since(self, t: float) -> list[tuple[float, JointState]]:
+        with self.lock:
+            return [(r, m) for r, m in self.states if r >= t]
+
+    def wait(self, predicate, timeout: float, since: float) -> tuple[float, JointState]:
+        """The first state received after ``since`` whose q satisfies ``predicate``."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for received, message in self.since(since):
+                if predicate(message.q):
+                    return received, message
+            time.sleep(0.005)
+        last = self.since(since)[-1:]
+        raise AssertionError(f"no matching JointState within {timeout}s; last: {last}")
+
+
+class Commander:
+    """Publishes JointCommand(q, dq=0) at 200 Hz from a thread until stopped."""
+
+    def __init__(self, bus: Bus, q: np.ndarray) -> None:
+        self._publisher = bus.publisher("robot/command")
+        self._q = q
+        self._stop = threading.Event()
+        self.first_put = self.last_put = 0.0
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.005):
+            self._publisher.put(JointCommand(stamp=time.monotonic(), q=self._q, dq=np.zeros(8)))
+            self.last_put = time.monotonic()
+            self.first_put = self.first_put or self.last_put
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._thread.join(2)
+        return self.last_put
+
+
+def human_in_pelvis(frame_id: str = "robot") -> HumanState:
+    """Only the torso capsule valid, 4 cm long, inside the robot's welded pelvis."""
+    capsules = np.zeros((7, 2, 3))
+    capsules[TORSO] = [[0.0, -0.02, 0.72], [0.0, 0.02, 0.72]]
+    valid = np.zeros(7, bool)
+    valid[TORSO] = True
+    return HumanState(
+        stamp=time.monotonic(), keypoints=np.zeros((15, 3)), keypoint_valid=np.zeros(15, bool),
+        theta=np.zeros(8), theta_valid=np.zeros(8, bool), capsules=capsules,
+        capsule_radii=np.full(7, 0.03), capsule_valid=valid, frame_id=frame_id,
+    )
+
+
+@pytest.mark.parametrize("which", ["ours", "real_g1"])
+def test_executor_follows_holds_and_counts_over_zenoh(spawn, which: str) -> None:
+    model_flags: list[str] = []
+    if which == "real_g1":
+        if not G1_MJCF.is_file():
+            pytest.skip(f"real G1 model not found at {G1_MJCF} (set SAFEMIMIC_TEAM_SHARED to the team folder)")
+        model_flags = ["--robot-model", str(G1_MJCF)]
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    service = spawn(
+        "-m", "safemimic.cli", "executor", "--mode", "peer", "--listen", endpoint, "--no-multicast",
+        "--viewer", *model_flags, env={"DISPLAY": "", "WAYLAND_DISPLAY": ""},
+    )
+    states, watcher = StateLog(), AliveWatcher()
+    with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
+        bus.subscribe("robot/joint_state", states)
+        bus.watch_alive(watcher)
+        watcher.wait("executor", True, timeout=20)
+        _, first = states.wait(lambda q: True, timeout=10, since=0.0)
+        np.testing.assert_allclose(first.q, Q_HOME, atol=1e-3)  # no command yet: home
+
+        # A step on all 8 joints is followed to within 0.02 rad in 0.5 s.
+        target = Q_HOME + STEP
+        commander = Commander(bus, target)
+        while not commander.first_put:
+            time.sleep(0.001)
+        reached, _ = states.wait(lambda q: np.abs(q - target).max() < 0.02, timeout=2, since=commander.first_put)
+        print(f"{which}: step followed to within 0.02 rad after {reached - commander.first_put:.3f} s")
+        assert reached - commander.first_put <= 0.5, f"reached after {reached - commander.first_put:.3f} s"
+
+        # Commands stop: after the timeout the robot keeps holding the last commanded position.
+        stopped = commander.stop()
+        time.sleep(0.7)
+        held = [m.q for r, m in states.since(stopped)]
+        assert len(held) > 50, "JointState must keep coming while commands are stale"
+        assert np.abs(np.array(held) - target).max() < 0.02
+
+        # Malformed payloads and a human state in the wrong frame are dropped; the service goes on.
+        bus.put_raw("robot/command", b"\xc1 not msgpack")
+        bus.put_raw("robot/command", msgpack.packb({"schema": {"name": "JointCommand", "version": 1},
+                                                    "stamp": 0.0, "q": [1.0] * 3, "dq": [0.0] * 8}))
+        bus.put_raw("human/state", b"\x00" * 64)
+        bus.put_raw("human/state", encode(human_in_pelvis(frame_id="camera")))
+        # The person's torso capsule inside the welded pelvis: counted as a robot–human contact.
+        humans = bus.publisher("human/state")
+        for _ in range(5):
+            humans.put(human_in_pelvis())
+            time.sleep(0.02)
+        after = time.monotonic()
+        time.sleep(0.2)
+        assert len(states.since(after)) > 10, "the service stopped publishing after bad input"
+
+    service.popen.terminate()
+    counters = service.wait_json("stopped", timeout=15)
+    output = "".join(service.output)
+    assert "needs a display" in output, "--viewer without a display must say why it runs headless"
+    assert counters["tick_errors"] == 0
+    assert counters["commands_applied"] >= 20  # 200 Hz until the step was reached
+    assert counters["command_timeouts"] >= 1
+    assert counters["stale_ticks"] >= 0.4 * counters["rate_hz"]  # ≥ 0.4 s of the 0.5 s held after the timeout
+    assert counters["dropped"].get("robot/command", 0) >= 2
+    assert counters["dropped"].get("human/state", 0) >= 2
+    assert counters["human_updates"] >= 1
+    contacts = counters["contacts"]
+    assert "pelvis|torso" in contacts["robot_human"]["pairs"], contacts
+    assert contacts["robot_robot"]["steps"] == 0, contacts
+    assert counters["achieved_hz"] > 0.9 * counters["rate_hz"]
+
+
+def test_bad_robot_model_is_a_clear_error(spawn, tmp_path) -> None:
+    missing = tmp_path / "nope.xml"
+    service = spawn("-m", "services.executor", "--robot-model", str(missing), "--no-multicast", "--duration", "1")
+    assert service.popen.wait(30) == 2
+    time.sleep(0.1)  # let the reader thread drain stdout
+    assert f"robot model {missing} does not exist" in "".join(service.output)

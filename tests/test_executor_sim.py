@@ -1,0 +1,216 @@
+"""The executor's MuJoCo simulation core (services.executor.sim), in-process, with our shipped
+G1-class model and with Menagerie's real G1 (meshes): welded base, joint servos, the person's
+capsules, and contact counting including the DESIGN §10 trap (a mocap capsule inside the welded
+pelvis, which MuJoCo's own contact list never reports)."""
+
+from __future__ import annotations
+
+import logging
+
+import mujoco
+import numpy as np
+import pytest
+
+from services.executor.mujoco_executor import MujocoExecutor, open_viewer
+from services.executor.sim import HUMAN_CONAFFINITY, HUMAN_CONTYPE, PDGains, SimModelError, SimRobot
+from shared.config import ExecutorConfig
+from shared.names import CAPSULE_NAMES
+from shared.robot_spec import RobotSpec, default_robot_spec_path, load_robot_spec
+from tests.conftest import G1_MJCF
+
+GAINS = PDGains.from_config(ExecutorConfig())
+OURS = load_robot_spec(default_robot_spec_path())
+TORSO = CAPSULE_NAMES.index("torso")
+LEFT_FOREARM = CAPSULE_NAMES.index("left_forearm")
+
+
+def model_spec(which: str) -> RobotSpec:
+    if which == "ours":
+        return OURS
+    if not G1_MJCF.is_file():
+        pytest.skip(f"real G1 model not found at {G1_MJCF} (set SAFEMIMIC_TEAM_SHARED to the team folder)")
+    return OURS.with_model(G1_MJCF)
+
+
+@pytest.fixture(scope="module", params=["ours", "real_g1"])
+def sim(request) -> SimRobot:
+    robot = SimRobot(model_spec(request.param), GAINS)
+    yield robot
+
+
+@pytest.fixture(autouse=True)
+def _fresh(request) -> None:
+    if "sim" in request.fixturenames:
+        request.getfixturevalue("sim").reset()
+
+
+def with_joints(sim: SimRobot, **angles: float) -> np.ndarray:
+    """Home with some imitation joints (``name_joint=value``, rad) changed."""
+    q = sim.q_home.copy()
+    for name, value in angles.items():
+        q[sim.joint_names.index(name)] = value
+    return q
+
+
+def person_capsules(capsule: int, a, b, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Only capsule ``capsule`` valid, from a to b (m) with ``radius``; the others invalid."""
+    capsules = np.zeros((7, 2, 3))
+    capsules[capsule] = a, b
+    valid = np.zeros(7, bool)
+    valid[capsule] = True
+    return capsules, np.full(7, radius), valid
+
+
+# ------------------------------------------------------------------------------- the robot
+def test_base_is_welded_and_home_holds_without_contacts(sim: SimRobot) -> None:
+    assert sim.model.nq == sim.model.nv == 29, "the free joint must be gone: 29 hinge joints"
+    assert sim.home_contacts == (), "our home keeps every link apart; so does Menagerie's G1 at our home"
+    sim.step(500)  # 1 s
+    pelvis = sim.data.body(sim.spec.base_body).xpos
+    np.testing.assert_allclose(pelvis, [0.0, 0.0, sim.spec.base_height], atol=1e-12)
+    np.testing.assert_allclose(sim.q, sim.q_home, atol=1e-3)
+    held = [j for j in range(sim.model.njnt) if sim.model.joint(j).name not in sim.joint_names]
+    np.testing.assert_allclose(sim.data.qpos[held], 0.0, atol=1e-3)  # every other joint: home = 0
+    assert sim.contacts().empty
+
+
+def test_step_command_is_followed_within_half_a_second(sim: SimRobot) -> None:
+    target = sim.q_home + np.array([0.2, 0.2, -0.4, 0.3, -0.4, -0.4, -0.3, -0.4])  # arms out/forward
+    applied = sim.set_command(target)
+    np.testing.assert_array_equal(applied, target)
+    sim.step(round(0.5 / sim.timestep))
+    assert np.abs(sim.q - target).max() < 0.02, sim.q - target
+    assert np.abs(sim.dq).max() < 0.2
+    assert sim.contacts().empty
+
+
+def test_velocity_feed_forward_reduces_tracking_lag(sim: SimRobot) -> None:
+    """A ramp at 1 rad/s on the left elbow: with its velocity fed forward the lag nearly vanishes."""
+    lags = []
+    for feed_forward in (False, True):
+        sim.reset()
+        elbow = sim.joint_names.index("left_elbow_joint")
+        for k in range(1, 151):  # 0.3 s
+            q = sim.q_home.copy()
+            q[elbow] -= 1.0 * k * sim.timestep
+            dq = np.zeros(8)
+            dq[elbow] = -1.0 if feed_forward else 0.0
+            sim.set_command(q, dq)
+            sim.step()
+        lags.append(abs(sim.q[elbow] - q[elbow]))
+    assert lags[1] < 0.3 * lags[0], lags
+
+
+def test_arm_commanded_into_the_torso_is_a_robot_robot_contact(sim: SimRobot) -> None:
+    sim.set_command(with_joints(sim, left_shoulder_pitch_joint=-0.6, left_shoulder_roll_joint=-0.8))
+    sim.step(250)
+    pairs = {(c.body_a, c.body_b) for c in sim.contacts().robot_robot}
+    assert ("left_shoulder_yaw_link", "torso_link") in pairs, pairs
+    assert all(c.depth > 0 for c in sim.contacts().robot_robot)
+
+
+# ------------------------------------------------------------------------------- the person
+def test_human_capsule_inside_the_welded_pelvis_is_counted(sim: SimRobot) -> None:
+    """DESIGN §10: MuJoCo skips contacts between two DOF-less bodies (mocap capsule, welded pelvis)."""
+    sim.set_human(*person_capsules(TORSO, [0.0, -0.02, 0.72], [0.0, 0.02, 0.72], 0.03))
+    sim.step()
+    pelvis_geoms = set(sim.static_geoms.tolist())
+    assert pelvis_geoms and all(sim.model.geom_bodyid[g] == sim.model.body("pelvis").id for g in pelvis_geoms)
+    in_mujoco = [tuple(g) for g in sim.data.contact.geom[: sim.data.ncon] if pelvis_geoms & set(g.tolist())]
+    assert in_mujoco == [], "MuJoCo reported the static pair after all: the workaround may go"
+    report = sim.contacts()
+    assert [(c.body_a, c.body_b) for c in report.robot_human] == [("pelvis", "torso")]
+    assert report.robot_human[0].depth > 0.02
+    assert report.robot_robot == ()
+
+
+def test_human_capsule_is_resized_at_runtime_and_parked_when_invalid(sim: SimRobot) -> None:
+    """A forearm capsule pointing forward from the left elbow: short it stays clear, long it reaches
+    the arm (its centre is then 0.45 m away: MuJoCo's bounding volumes must follow the new size),
+    invalid it is gone."""
+    elbow = sim.data.body("left_elbow_link").xpos.copy()
+    far_end = elbow + [0.9, 0.0, 0.0]
+    for near_x, valid, touches in [(0.2, True, False), (0.0, True, True), (0.0, False, False)]:
+        capsules, radii, flags = person_capsules(LEFT_FOREARM, elbow + [near_x, 0.0, 0.0], far_end, 0.03)
+        flags[LEFT_FOREARM] = valid
+        sim.set_human(capsules, radii, flags)
+        sim.step()
+        hits = {(c.body_a, c.body_b) for c in sim.contacts().robot_human}
+        assert any(b == "left_forearm" and a.startswith("left_") for a, b in hits) == touches, (near_x, valid, hits)
+        assert all(b == "left_forearm" for _, b in hits)
+
+
+def test_human_capsules_touch_the_robot_but_not_each_other(sim: SimRobot) -> None:
+    capsules = np.tile([[2.0, 0.0, 0.5], [2.0, 0.0, 1.5]], (7, 1, 1))  # all overlapping, away from the robot
+    sim.set_human(capsules, np.full(7, 0.1), np.ones(7, bool))
+    sim.step()
+    assert sim.data.ncon == 0 and sim.contacts().empty
+    human = [sim.model.geom(f"human_{c}").id for c in CAPSULE_NAMES]
+    assert (sim.model.geom_contype[human] == HUMAN_CONTYPE).all()
+    assert (sim.model.geom_conaffinity[human] == HUMAN_CONAFFINITY).all()
+
+
+def test_bad_inputs_are_refused_or_neutralised(sim: SimRobot) -> None:
+    with pytest.raises(ValueError, match="shape"):
+        sim.set_command(np.zeros(7))
+    with pytest.raises(ValueError, match="finite"):
+        sim.set_command(np.full(8, np.nan))
+    applied = sim.set_command(np.full(8, 100.0))
+    np.testing.assert_array_equal(applied, sim.q_max)
+    with pytest.raises(ValueError, match="expected capsules"):
+        sim.set_human(np.zeros((6, 2, 3)), np.zeros(6), np.ones(6, bool))
+    far = np.tile([[1e9, 0.0, 0.0], [1e9, 0.0, 1.0]], (7, 1, 1))  # finite but absurd: parked
+    far[0] = np.nan
+    sim.set_human(far, np.full(7, 0.1), np.ones(7, bool))
+    sim.step(10)
+    assert np.isfinite(sim.data.qpos).all() and sim.contacts().robot_human == ()
+
+
+# ------------------------------------------------------------------------------- construction
+@pytest.mark.parametrize("which", ["ours", "real_g1"])
+def test_pairs_touching_at_home_are_excluded_and_listed(which: str) -> None:
+    spec = model_spec(which)
+    home = {**spec.home, "left_shoulder_roll_joint": -0.1, "left_elbow_joint": 1.9}  # upper arm on the chest
+    robot = SimRobot(spec.model_copy(update={"home": home}), GAINS)
+    assert ("left_shoulder_yaw_link", "torso_link") in robot.home_contacts
+    robot.step(100)
+    assert robot.contacts().robot_robot == ()
+    # the other arm is not excluded: pushed into the torso it is still counted
+    robot.set_command(with_joints(robot, right_shoulder_pitch_joint=-0.6, right_shoulder_roll_joint=0.8))
+    robot.step(250)
+    assert ("right_shoulder_yaw_link", "torso_link") in {(c.body_a, c.body_b) for c in robot.contacts().robot_robot}
+
+
+def test_model_errors_are_clear(tmp_path) -> None:
+    with pytest.raises(SimModelError, match="does not exist"):
+        SimRobot(OURS.with_model(tmp_path / "missing.xml"), GAINS)
+    broken = tmp_path / "broken.xml"
+    broken.write_text("<mujoco><worldbody><body name='pelvis'>")
+    with pytest.raises(SimModelError, match="cannot load"):
+        SimRobot(OURS.with_model(broken), GAINS)
+    with pytest.raises(SimModelError, match="no_such_joint"):
+        SimRobot(OURS, PDGains(1.0, 0.1, 1.0, 0.1, per_joint={"no_such_joint": (1.0, 0.1)}))
+    with pytest.raises(SimModelError, match="base body"):
+        SimRobot(OURS.model_copy(update={"base_body": "nowhere"}), GAINS)
+
+
+def test_executor_splits_the_control_period_into_physics_steps() -> None:
+    executor = MujocoExecutor(OURS, GAINS, period=1 / 200)
+    assert executor.substeps == 3 and executor.sim.timestep == pytest.approx(1 / 600)
+    start = executor.sim.time
+    executor.tick()
+    assert executor.sim.time - start == pytest.approx(1 / 200)
+    reading = executor.read_state()
+    np.testing.assert_allclose(reading.q, executor.q_home, atol=1e-4)
+    assert mujoco.mj_name2id(executor.sim.model, mujoco.mjtObj.mjOBJ_JOINT, "floating_base_joint") == -1
+
+
+def test_viewer_without_a_usable_display_warns_instead_of_exiting(monkeypatch, caplog) -> None:
+    """MuJoCo's viewer exits the process when GLFW fails: a display that cannot open must be
+    detected first (here an X display nobody serves)."""
+    monkeypatch.setenv("DISPLAY", ":4711")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    robot = SimRobot(OURS, GAINS)
+    with caplog.at_level(logging.WARNING, logger="safemimic.executor"):
+        assert open_viewer(robot.model, robot.data) is None
+    assert "running headless" in caplog.text
