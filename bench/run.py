@@ -12,6 +12,7 @@ from bench.common import RESULTS_DIR, write_result
 #: benchmark name → module with ``run(**kwargs) -> dict`` (later issues add safety_step, latency, ...).
 BENCHMARKS: dict[str, str] = {
     "codec": "bench.codec",
+    "perception": "bench.perception",
     "safety_step": "bench.safety_step",
 }
 

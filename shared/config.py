@@ -183,7 +183,8 @@ PLACEMENT_PATTERN = rf"^(?:auto|side-by-side|facing|recorded|{_NUMBER},{_NUMBER}
 class SkeletonSourceName(str, Enum):
     REPLAY = "replay"
     SCENARIO = "scenario"
-    CAMERA = "camera"
+    CAMERA = "camera"  # OpenCV + monocular 3D pose: a later issue
+    ZED = "zed"  # ZED SDK body tracking: a later issue
 
 
 class PoseEstimatorName(str, Enum):

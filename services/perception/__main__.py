@@ -1,0 +1,4 @@
+"""``python -m services.perception``: the perception service (same as ``safemimic perception``)."""
+from services.perception.service import cli
+
+cli()

@@ -1,0 +1,265 @@
+"""The reduced human pose θ ∈ R^8 from a skeleton (paper §II-A).
+
+Frames
+------
+Points are in the robot frame (x forward, y left, z up; ``k = (0, 0, 1)`` is the global up of the
+paper's F_Z). The torso frame F_T (paper): origin at the pelvis,
+
+    e_z = unit(c − pelvis),                 c = shoulder centre,
+    e_x = unit(l − (l·e_z) e_z),            l = right_shoulder − left_shoulder  (the person's RIGHT),
+    e_y = e_z × e_x                         (the person's FORWARD; right-handed).
+
+This is the axis convention the paper's formulas imply: with it, arm forward gives +π/2 shoulder
+pitch and an arm out sideways +π/2 shoulder roll on both sides (see the tests).
+
+Angles (radians), in :data:`shared.names.POSE_ANGLE_NAMES` order
+------------------------------------------------------------------
+With ``k_T = (k·e_x, k·e_y, k·e_z)`` the global up in torso coordinates,
+
+    torso roll  = atan2(−e_yᵀ(k × e_z), kᵀe_z) = atan2(k·e_x, k·e_z)   (+: leaning to the person's left)
+    torso pitch = atan2(−e_xᵀ(k × e_z), kᵀe_z) = atan2(−k·e_y, k·e_z)  (+: leaning forward)
+
+(the identities follow from e_z × e_y = −e_x and e_z × e_x = e_y). For an arm with upper-arm
+vector u (shoulder → elbow) and forearm f (elbow → wrist), write u in torso coordinates as
+(o, f', d) = (σ u_x, u_y, −u_z)/‖u‖ — outward, forward, downward — with σ = −1 on the left and
++1 on the right. The paper's estimator (``paper``) is
+
+    pitch = atan2(u_y, −u_z) = atan2(f', d),     roll = atan2(∓u_x, −u_z) = atan2(o, d),
+    elbow = arccos(u·f / (‖u‖ ‖f‖))              (0 = straight).
+
+Its pitch and roll are the angles of the arm's projections onto the sagittal and frontal planes.
+They are well conditioned while the arm points down (d > 0) but wrap at ±π overhead: an arm
+swept sideways past shoulder height flips pitch from 0 to π in one frame.
+
+The continuous estimator (default)
+----------------------------------
+It follows the robot's shoulder joint order — pitch about the lateral axis first, then roll — so
+that the robot, driven by these angles, points its arm where the person does. That chain maps
+(pitch p, roll r) to the direction (o, f', d) = (sin r, cos r sin p, cos r cos p). Per frame:
+
+1. pitch: the sagittal angle p̂ = atan2(f', d). In the paper zone (d ≥ ``paper_zone``, the arm
+   clearly below the shoulder) p = p̂ exactly. Elsewhere p = p_prev + κ·wrap_π(p̂ − p_prev): the
+   change is taken modulo π (the chain reaches every direction twice, (p, r) and (p ± π, ±π − r);
+   the branch nearest the previous frame wins) and scaled by κ = min(1, s/``pitch_observability``)
+   with s = √(f'² + d²) = |cos r|: near the arm's lateral axis pitch barely moves the arm, so its
+   noisy measurement is followed only in proportion to how observable it is. Without history
+   (first frame) p = p̂, the branch with |roll| ≤ π/2 (the G1's roll range is the narrow one),
+   except where pitch is unobservable (s < ``pitch_observability``): there the untwisted branch
+   |p| ≤ π/2 is taken, so an arm held out sideways reads pitch 0, roll π/2.
+2. roll: r = atan2(o, w) with w = f' sin(λp) + d cos(λp), λ = smoothstep((zone − d)/zone) in [0, 1].
+   λ = 0 (paper zone) gives the paper's roll atan2(o, d); λ = 1 (arm at or above the shoulder)
+   gives the roll that best reproduces the arm direction after pitch p (it maximises the dot
+   product between the chain's direction and u), which on the tracked branch is the exact
+   inverse of the chain. Outside the paper zone r is unwrapped against the previous frame.
+
+So the two estimators agree exactly wherever the paper's is well conditioned — the default
+``paper_zone`` = 0.5 is an upper arm at least 30° below horizontal, where the paper's angles
+move at most 1/d = 2× as fast as the arm — and the continuous one stays continuous through
+overhead arm motion. Between d = 0.5 and the horizontal the roll blends smoothly from the
+paper's to the chain's. Known limits: an arm passing close to its own lateral axis (gimbal lock
+of the pitch-roll chain) must turn pitch by up to π there, which κ spreads over several frames;
+an arm that went overhead on the roll branch and comes down in front snaps back to the paper's
+values on entering the paper zone. A frame where an arm is invalid forgets its history (the
+next valid frame starts afresh).
+
+Validity: torso angles need the pelvis and both shoulders with a torso and a shoulder line of at
+least ``min_segment``; shoulder angles also need the elbow and an upper arm ≥ ``min_segment``;
+the elbow needs shoulder, elbow, wrist and both segments ≥ ``min_segment``. An invalid angle holds
+its last valid value (0 before the first); no output is ever NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.config import PoseAnglesConfig, PoseEstimatorName
+from shared.names import KEYPOINT_INDEX, POSE_ANGLE_NAMES
+
+_PELVIS = KEYPOINT_INDEX["pelvis"]
+_L_SHOULDER = KEYPOINT_INDEX["left_shoulder"]
+_R_SHOULDER = KEYPOINT_INDEX["right_shoulder"]
+#: (side sign σ, shoulder, elbow, wrist, index of the arm's pitch in θ); pitch, roll, elbow follow.
+_ARMS = (
+    (-1.0, _L_SHOULDER, KEYPOINT_INDEX["left_elbow"], KEYPOINT_INDEX["left_wrist"], 2),
+    (1.0, _R_SHOULDER, KEYPOINT_INDEX["right_elbow"], KEYPOINT_INDEX["right_wrist"], 5),
+)
+N_ANGLES = len(POSE_ANGLE_NAMES)
+_TWO_PI = 2.0 * math.pi
+Vec = tuple[float, float, float]
+
+
+def _sub(a: Vec, b: Vec) -> Vec:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+def _dot(a: Vec, b: Vec) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _norm(a: Vec) -> float:
+    return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+
+
+def wrap_2pi(angle: float) -> float:
+    """``angle`` wrapped into [−π, π)."""
+    return angle - _TWO_PI * math.floor((angle + math.pi) / _TWO_PI)
+
+
+def wrap_pi(angle: float) -> float:
+    """``angle`` wrapped into [−π/2, π/2): the difference modulo a half turn."""
+    return angle - math.pi * math.floor(angle / math.pi + 0.5)
+
+
+def smoothstep(x: float) -> float:
+    """C¹ ramp: 0 for x ≤ 0, 1 for x ≥ 1, 3x² − 2x³ between."""
+    x = min(1.0, max(0.0, x))
+    return x * x * (3.0 - 2.0 * x)
+
+
+def torso_axes(pelvis: Vec, left_shoulder: Vec, right_shoulder: Vec, min_segment: float) -> tuple[Vec, Vec, Vec] | None:
+    """Unit e_x (right), e_y (forward), e_z (up) of F_T in the input frame; None if degenerate.
+
+    Degenerate: torso (pelvis → shoulder centre) or orthogonalised shoulder line shorter than
+    ``min_segment`` (m), or non-finite input. Plain float tuples: this runs every frame.
+    """
+    up = (0.5 * (left_shoulder[0] + right_shoulder[0]) - pelvis[0],
+          0.5 * (left_shoulder[1] + right_shoulder[1]) - pelvis[1],
+          0.5 * (left_shoulder[2] + right_shoulder[2]) - pelvis[2])
+    length = _norm(up)
+    if not length >= min_segment:  # also catches NaN
+        return None
+    e_z = (up[0] / length, up[1] / length, up[2] / length)
+    line = _sub(right_shoulder, left_shoulder)
+    along = _dot(line, e_z)
+    line = (line[0] - along * e_z[0], line[1] - along * e_z[1], line[2] - along * e_z[2])
+    width = _norm(line)
+    if not width >= min_segment:
+        return None
+    e_x = (line[0] / width, line[1] / width, line[2] / width)
+    e_y = (e_z[1] * e_x[2] - e_z[2] * e_x[1], e_z[2] * e_x[0] - e_z[0] * e_x[2], e_z[0] * e_x[1] - e_z[1] * e_x[0])
+    return e_x, e_y, e_z
+
+
+def torso_roll_pitch(axes: tuple[Vec, Vec, Vec]) -> tuple[float, float]:
+    """Torso (roll, pitch) from the torso axes (e_x, e_y, e_z): the paper's formulas."""
+    e_x, e_y, e_z = axes
+    k_x, k_y, k_z = e_x[2], e_y[2], e_z[2]  # the global up k = (0, 0, 1) in F_T
+    return math.atan2(k_x, k_z), math.atan2(-k_y, k_z)
+
+
+@dataclass
+class _ArmGeometry:
+    """One arm in torso coordinates: unit upper-arm (outward, forward, down) and the elbow angle."""
+
+    ok: bool  # shoulder angles computable
+    o: float = 0.0
+    f: float = 0.0
+    d: float = 1.0
+    elbow_ok: bool = False
+    elbow: float = 0.0
+
+
+class PoseEstimator:
+    """θ from one skeleton per call; ``paper`` or ``continuous`` shoulder angles (module docstring).
+
+    Call with ``xyz`` (15, 3) points (any z-up frame; robot frame in the service) and ``valid``
+    (15,) bool; returns (θ (8,), θ_valid (8,)). θ entries that are invalid hold their last valid
+    value. The estimator keeps per-arm history (continuous mode): :meth:`reset` forgets it.
+    """
+
+    def __init__(self, conf: PoseAnglesConfig) -> None:
+        self.configure(conf)
+        self.theta = np.zeros(N_ANGLES)
+        self.theta_valid = np.zeros(N_ANGLES, dtype=bool)
+        self._history = [False, False]  # per arm: previous pitch/roll usable for branch tracking
+
+    def configure(self, conf: PoseAnglesConfig) -> None:
+        """Estimator and thresholds for the following frames."""
+        self.conf = conf
+        self.continuous = conf.estimator == PoseEstimatorName.CONTINUOUS
+
+    def reset(self) -> None:
+        """Forget the branch history (held outputs stay, for display only: they are invalid now)."""
+        self._history = [False, False]
+        self.theta_valid[:] = False
+
+    def __call__(self, xyz: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        points: list[Vec] = xyz.tolist()
+        present: list[bool] = valid.tolist()
+        theta, ok = self.theta, self.theta_valid
+        ok[:] = False
+        axes = None
+        if present[_PELVIS] and present[_L_SHOULDER] and present[_R_SHOULDER]:
+            axes = torso_axes(points[_PELVIS], points[_L_SHOULDER], points[_R_SHOULDER], self.conf.min_segment)
+        if axes is not None:
+            theta[0], theta[1] = torso_roll_pitch(axes)
+            ok[0] = ok[1] = True
+        for arm, (sign, shoulder, elbow, wrist, first) in enumerate(_ARMS):
+            geometry = self._arm_geometry(points, present, axes, sign, shoulder, elbow, wrist)
+            if geometry.elbow_ok:
+                theta[first + 2] = geometry.elbow
+                ok[first + 2] = True
+            if not geometry.ok:
+                self._history[arm] = False
+                continue
+            if self.continuous:
+                pitch, roll = self._continuous(arm, geometry, float(theta[first]), float(theta[first + 1]))
+            else:
+                pitch, roll = math.atan2(geometry.f, geometry.d), math.atan2(geometry.o, geometry.d)
+            theta[first], theta[first + 1] = pitch, roll
+            ok[first] = ok[first + 1] = True
+            self._history[arm] = True
+        return theta.copy(), ok.copy()
+
+    def _arm_geometry(
+        self, points: list[Vec], present: list[bool], axes: tuple[Vec, Vec, Vec] | None,
+        sign: float, shoulder: int, elbow: int, wrist: int,
+    ) -> _ArmGeometry:
+        min_segment = self.conf.min_segment
+        if not (present[shoulder] and present[elbow]):
+            return _ArmGeometry(ok=False)
+        upper = _sub(points[elbow], points[shoulder])
+        upper_len = _norm(upper)
+        if not upper_len >= min_segment:
+            return _ArmGeometry(ok=False)
+        geometry = _ArmGeometry(ok=axes is not None)
+        if present[wrist]:
+            fore = _sub(points[wrist], points[elbow])
+            fore_len = _norm(fore)
+            if fore_len >= min_segment:
+                cosine = _dot(upper, fore) / (upper_len * fore_len)
+                geometry.elbow = math.acos(min(1.0, max(-1.0, cosine)))
+                geometry.elbow_ok = True
+        if axes is not None:
+            e_x, e_y, e_z = axes
+            geometry.o = sign * _dot(e_x, upper) / upper_len
+            geometry.f = _dot(e_y, upper) / upper_len
+            geometry.d = -_dot(e_z, upper) / upper_len
+        return geometry
+
+    def _continuous(self, arm: int, g: _ArmGeometry, pitch_prev: float, roll_prev: float) -> tuple[float, float]:
+        zone = self.conf.paper_zone
+        measured = math.atan2(g.f, g.d)
+        history = self._history[arm]
+        observability = self.conf.pitch_observability
+        s = math.hypot(g.f, g.d)
+        if g.d >= zone:
+            pitch = measured
+        elif not history:  # fresh start: the |roll| ≤ π/2 branch, untwisted where pitch is unobservable
+            pitch = measured
+            if s < observability and abs(measured) > 0.5 * math.pi:
+                pitch -= math.copysign(math.pi, measured)
+        else:
+            gain = 1.0 if s >= observability else s / observability
+            pitch = pitch_prev + gain * wrap_pi(measured - pitch_prev)
+        blend = smoothstep((zone - g.d) / zone)
+        if blend == 0.0:
+            return pitch, math.atan2(g.o, g.d)
+        q = blend * pitch
+        roll = math.atan2(g.o, g.f * math.sin(q) + g.d * math.cos(q))
+        if history:
+            roll = roll_prev + wrap_2pi(roll - roll_prev)
+        return pitch, roll

@@ -1,0 +1,112 @@
+"""The seven human capsules (paper §III-A) from the filtered skeleton, with endpoint velocities.
+
+Capsule i is the segment [a_i, b_i] (metres, the frame of the points: the robot frame in the
+service) with radius r_i from :class:`shared.config.HumanConfig`, in
+:data:`shared.names.CAPSULE_NAMES` order:
+
+    torso       pelvis → spine_chest (base of the neck); the shoulder centre if spine_chest is missing
+    upper arm   shoulder → elbow
+    forearm     elbow → wrist + ``hand_extension`` · unit(wrist − elbow)   (covers the hand)
+    thigh       hip → knee
+
+A capsule is valid when the keypoints defining it are valid. Endpoint velocities (m/s) are
+backward finite differences of the endpoints between consecutive frames, (e_t − e_{t−1})/Δt;
+they are zero for a capsule that was not valid in both frames, whose keypoints were
+(re)initialised this frame, or whose torso top switched between spine_chest and shoulder centre.
+Endpoints of an invalid capsule are its last ones (zeros before the first): always finite.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from services.perception.point_filter import FilteredSkeleton
+from shared.config import HumanConfig
+from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX
+
+_K = KEYPOINT_INDEX
+#: Capsule → (start keypoint, end keypoint) in CAPSULE_NAMES order (the torso's end may fall back).
+_SEGMENTS = {
+    "torso": (_K["pelvis"], _K["spine_chest"]),
+    "left_upper_arm": (_K["left_shoulder"], _K["left_elbow"]),
+    "left_forearm": (_K["left_elbow"], _K["left_wrist"]),
+    "right_upper_arm": (_K["right_shoulder"], _K["right_elbow"]),
+    "right_forearm": (_K["right_elbow"], _K["right_wrist"]),
+    "left_thigh": (_K["left_hip"], _K["left_knee"]),
+    "right_thigh": (_K["right_hip"], _K["right_knee"]),
+}
+#: (7, 2) keypoint index of every capsule endpoint: one gather gives all endpoints.
+_ENDPOINTS = np.array([_SEGMENTS[name] for name in CAPSULE_NAMES])
+_PAIRS = [tuple(pair) for pair in _ENDPOINTS.tolist()]
+_FOREARMS = (CAPSULE_NAMES.index("left_forearm"), CAPSULE_NAMES.index("right_forearm"))
+_TORSO = CAPSULE_NAMES.index("torso")
+_PELVIS = _K["pelvis"]
+_SHOULDERS = [_K["left_shoulder"], _K["right_shoulder"]]
+N_CAPSULES = len(CAPSULE_NAMES)
+
+
+def capsule_radii(human: HumanConfig) -> np.ndarray:
+    """(7,) radii (m) in CAPSULE_NAMES order."""
+    by_part = {"torso": human.torso_radius, "upper_arm": human.upper_arm_radius,
+               "forearm": human.forearm_radius, "thigh": human.thigh_radius}
+    return np.array([by_part[name.removeprefix("left_").removeprefix("right_")] for name in CAPSULE_NAMES])
+
+
+class HumanCapsules:
+    """Builds (endpoints (7, 2, 3), valid (7,), velocities (7, 2, 3)) from filtered skeletons."""
+
+    def __init__(self, human: HumanConfig) -> None:
+        self.configure(human)
+        self.endpoints = np.zeros((N_CAPSULES, 2, 3))
+        self.valid = np.zeros(N_CAPSULES, dtype=bool)
+        self._t: float | None = None
+        self._torso_from_shoulders = False
+
+    def configure(self, human: HumanConfig) -> None:
+        """Radii and hand extension for the following frames."""
+        self.radii = capsule_radii(human)
+        self.hand_extension = human.hand_extension
+
+    def reset(self) -> None:
+        """Forget the previous frame (no velocities until the next two valid frames)."""
+        self._t = None
+        self.valid[:] = False
+
+    def __call__(self, skeleton: FilteredSkeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        points = skeleton.points
+        point_valid: list[bool] = skeleton.valid.tolist()
+        point_fresh: list[bool] = skeleton.fresh.tolist()
+        ends = points[_ENDPOINTS]  # (7, 2, 3)
+        valid = [point_valid[a] and point_valid[b] for a, b in _PAIRS]
+        fresh = [point_fresh[a] or point_fresh[b] for a, b in _PAIRS]
+
+        left, right = _SHOULDERS
+        from_shoulders = not valid[_TORSO] and point_valid[_PELVIS] and point_valid[left] and point_valid[right]
+        if from_shoulders:
+            ends[_TORSO, 1] = 0.5 * (points[left] + points[right])
+            valid[_TORSO] = True
+            fresh[_TORSO] = point_fresh[_PELVIS] or point_fresh[left] or point_fresh[right]
+        if from_shoulders != self._torso_from_shoulders:
+            fresh[_TORSO] = True
+            self._torso_from_shoulders = from_shoulders
+
+        for i in _FOREARMS:  # extend past the wrist along the forearm
+            fore = ends[i, 1] - ends[i, 0]
+            length = math.sqrt(float(fore @ fore))
+            if length > 1e-9:
+                ends[i, 1] += (self.hand_extension / length) * fore
+
+        valid_now = np.array(valid)
+        if self._t is not None and skeleton.t > self._t:
+            moving = valid_now & self.valid & ~np.array(fresh)
+            velocities = (ends - self.endpoints) * (1.0 / (skeleton.t - self._t))
+            if not moving.all():
+                velocities[~moving] = 0.0
+        else:
+            velocities = np.zeros((N_CAPSULES, 2, 3))
+        np.copyto(self.endpoints, ends, where=valid_now[:, None, None])
+        self.valid = valid_now
+        self._t = skeleton.t
+        return self.endpoints.copy(), valid_now.copy(), velocities
