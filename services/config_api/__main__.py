@@ -1,0 +1,3 @@
+from services.config_api.main import cli
+
+cli()

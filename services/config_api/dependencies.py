@@ -1,0 +1,87 @@
+"""What the routers get injected: the API context and the access checks.
+
+Every write needs ``Authorization: Bearer <token>``. Reads are open to loopback clients and need
+the token from anywhere else (when the server is bound to a non-loopback address).
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import time
+from dataclasses import dataclass, field
+from typing import Annotated
+
+from fastapi import Depends, Header, HTTPException, Request, Security, status
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from services.config_api.link import BusLink
+from services.config_api.store import ConfigStore
+from services.config_api.writer import Actor, ConfigWriter
+from shared.config import ApiConfig
+
+
+@dataclass
+class ApiContext:
+    """Everything a request handler may need, built once by ``main`` and injected."""
+
+    settings: ApiConfig
+    store: ConfigStore
+    link: BusLink
+    writer: ConfigWriter
+    token: str = field(repr=False)
+    started: float = field(default_factory=time.monotonic)
+
+
+def get_context(request: Request) -> ApiContext:
+    return request.app.state.context
+
+
+Context = Annotated[ApiContext, Depends(get_context)]
+_bearer = HTTPBearer(
+    scheme_name="bearer", auto_error=False,
+    description="the API token ($SAFEMIMIC_API_TOKEN, api.token, or the one generated at first start)",
+)
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)]
+
+
+def _token_ok(credentials: HTTPAuthorizationCredentials | None, token: str) -> bool:
+    return credentials is not None and hmac.compare_digest(credentials.credentials.encode(), token.encode())
+
+
+def _unauthorized() -> HTTPException:
+    return HTTPException(
+        status.HTTP_401_UNAUTHORIZED, "a valid bearer token is required", headers={"WWW-Authenticate": "Bearer"}
+    )
+
+
+def _is_loopback(request: Request) -> bool:
+    try:
+        return request.client is not None and ipaddress.ip_address(request.client.host).is_loopback
+    except ValueError:  # not an IP address (e.g. a test transport)
+        return False
+
+
+def require_writer(
+    request: Request,
+    context: Context,
+    credentials: Credentials,
+    operator: Annotated[
+        str | None,
+        Header(alias="X-Operator", max_length=64, pattern=r"^[\w .@-]+$", description="who makes the change (for the history)"),
+    ] = None,
+) -> Actor:
+    """A valid token, or 401; returns who makes the change."""
+    if not _token_ok(credentials, context.token):
+        raise _unauthorized()
+    client = request.client.host if request.client else "unknown"
+    return Actor(who=operator or "operator", client=client[:64])
+
+
+def allow_read(request: Request, context: Context, credentials: Credentials) -> None:
+    """Loopback clients read freely; others need the token."""
+    if not _is_loopback(request) and not _token_ok(credentials, context.token):
+        raise _unauthorized()
+
+
+Writer = Annotated[Actor, Depends(require_writer)]
