@@ -148,3 +148,21 @@ def test_compiled_kernel_matches_vectorised_geometry() -> None:
     p = endpoints[:n, 0] + s[:, None] * (endpoints[:n, 1] - endpoints[:n, 0])
     q = endpoints[n:, 0] + t[:, None] * (endpoints[n:, 1] - endpoints[n:, 0])
     np.testing.assert_allclose(np.linalg.norm(p - q, axis=1), distance, atol=1e-12)
+
+
+def test_pair_groups_radii_and_home_from_config() -> None:
+    """safety.enabled_pair_groups, safety.capsule_radii and retargeting.q_home (config API fields)."""
+    base = build_pipeline(load_config(environ={}))
+    conf = load_config(environ={}, overrides={
+        "safety": {"enabled_pair_groups": ["self_torso", "human"], "capsule_radii": {"left_forearm": 0.09}},
+        "retargeting": {"q_home": [0.0, 0.1, 0.0, 0.3, 1.0, 0.0, -0.3, 1.0]},
+    })
+    p = build_pipeline(conf)
+    names = set(p.pairs.names)
+    assert "left_forearm|torso" in names and "left_forearm|right_forearm" not in names
+    assert "left_upper_arm|left_thigh" not in names
+    assert sum(not s for s in p.pairs.is_self) == 49 and p.pairs.is_self.sum() == 2
+    rows, base_rows = p.filter.rows_at(base.kinematics.q_home), base.filter.rows_at(base.kinematics.q_home)
+    i, j = p.pairs.names.index("left_forearm|torso"), base.pairs.names.index("left_forearm|torso")
+    np.testing.assert_allclose(base_rows.h[j] - rows.h[i], 0.09 - base.kinematics.radii[2])
+    np.testing.assert_allclose(p.retargeter(np.zeros(8)), [0.0, 0.1, 0.0, 0.3, 1.0, 0.0, -0.3, 1.0])

@@ -9,7 +9,7 @@ import numpy as np
 from services.safety.barrier import CapsuleBarrier
 from services.safety.filter import FilterParams, SafetyFilter
 from services.safety.kinematics import RobotKinematics
-from services.safety.pairs import PairSet, preset_pair_set
+from services.safety.pairs import PairSet, preset_pair_set, select_groups
 from services.safety.retarget import Retargeter
 from shared.config import StackConfig
 from shared.robot_spec import RobotSpec, configured_robot_spec
@@ -28,10 +28,11 @@ class SafetyPipeline:
 
 
 def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinematics) -> Retargeter:
-    """Paper eq. 2 with q_home = the robot's home pose and S = robot sign ⊙ configured scale."""
+    """Paper eq. 2 with q_home = ``retargeting.q_home`` or the robot's home pose, and
+    S = robot sign ⊙ configured scale."""
     r = conf.retargeting
     return Retargeter(
-        q_home=kinematics.q_home,
+        q_home=kinematics.q_home if r.q_home is None else np.asarray(r.q_home),
         q_min=kinematics.q_min,
         q_max=kinematics.q_max,
         scale=np.asarray(spec.retarget_sign) * np.asarray(r.scale),
@@ -41,11 +42,20 @@ def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinemat
     )
 
 
+def robot_radii(conf: StackConfig, kinematics: RobotKinematics) -> np.ndarray:
+    """Robot capsule radii (7,): the robot description's, overridden by ``safety.capsule_radii``."""
+    radii = np.array(kinematics.radii, dtype=np.float64)
+    for name, radius in conf.safety.capsule_radii.items():
+        radii[kinematics.capsule_names.index(name)] = radius
+    return radii
+
+
 def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics: RobotKinematics | None = None) -> SafetyPipeline:
     """Assemble the safety pipeline for ``conf`` (optionally another pair preset / shared kinematics)."""
     spec = configured_robot_spec(conf) if kinematics is None else kinematics.spec
     kinematics = kinematics or RobotKinematics(spec)
     pairs = preset_pair_set(pair_preset or conf.safety.pairs, [tuple(p) for p in spec.self_pairs])
-    barrier = CapsuleBarrier(pairs, kinematics.radii, len(kinematics.joint_names))
+    pairs = select_groups(pairs, {group.value for group in conf.safety.enabled_pair_groups})
+    barrier = CapsuleBarrier(pairs, robot_radii(conf, kinematics), len(kinematics.joint_names))
     safety_filter = SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), conf.safety.backend.value)
     return SafetyPipeline(spec, kinematics, pairs, barrier, safety_filter, make_retargeter(conf, spec, kinematics))

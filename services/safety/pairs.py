@@ -87,3 +87,34 @@ def preset_pair_set(preset: str, default_self_pairs: Sequence[tuple[str, str]]) 
     if preset == "paper72":
         return sized_pair_set(default_self_pairs, 72)
     raise ValueError(f"unknown pair preset {preset!r}; known: default, paper72")
+
+
+def pair_group(robot: str, other: str | None) -> str:
+    """The switchable group of a pair (shared.config.PairGroup values): ``human`` for a robot–human
+    pair (``other`` None); a self pair is ``self_torso`` with the torso, else ``self_legs`` with a
+    thigh, else ``self_arms``."""
+    if other is None:
+        return "human"
+    names = {robot, other}
+    if "torso" in names:
+        return "self_torso"
+    if names & {"left_thigh", "right_thigh"}:
+        return "self_legs"
+    return "self_arms"
+
+
+def select_groups(pairs: PairSet, enabled: set[str]) -> PairSet:
+    """The pairs whose group is in ``enabled`` (same order, same external capsule count)."""
+    keep = np.array(
+        [
+            pair_group(CAPSULE_NAMES[a], CAPSULE_NAMES[b] if b < N_ROBOT else None) in enabled
+            for a, b in zip(pairs.first, pairs.second)
+        ],
+        dtype=bool,
+    )
+    return PairSet(
+        first=pairs.first[keep],
+        second=pairs.second[keep],
+        names=tuple(name for name, k in zip(pairs.names, keep) if k),
+        n_external=pairs.n_external,
+    )
