@@ -102,11 +102,9 @@ class PerceptionService:
             return
         version, new = pending
         running = _source_settings(self.conf.perception)
-        restart = [name for name in ("bus", "robot_id") if getattr(new, name) != getattr(self.conf, name)]
+        # bus and robot_id are this process's own deployment settings: never taken from an update
         if _source_settings(new.perception) != running:
-            restart.append("perception source settings")
-        if restart:
-            log.info("config v%d: %s not applied (they take effect at a restart)", version, ", ".join(restart))
+            log.info("config v%d: perception source settings not applied (they take effect at a restart)", version)
         perception = new.perception.model_copy(update=running)  # the source keeps running as it is
         self.pipeline.apply(perception, new.human)
         self.conf = self.conf.model_copy(update={"perception": perception, "human": new.human})
