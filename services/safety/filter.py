@@ -5,11 +5,16 @@
     q_cbf⁺ = q_cbf + Δt u*
 
 with u_lo/u_hi the velocity bounds intersected with the joint limits reachable in one step.
-If the rows are infeasible (or the solver fails) a relaxed problem with one slack per row,
-min … + ½ ρ ‖σ‖²  s.t.  A u + σ ≥ b, σ ≥ 0, is solved instead; if that fails too the filter
-holds (u* = 0). The mode says which happened; the output is always finite. A state that is
+If the rows are infeasible (or the solver fails) a relaxed problem with one slack shared by
+every row, min … + ½ ρ σ²  s.t.  A u + σ 1 ≥ b, σ ≥ 0, is solved instead: the smallest uniform
+violation (no row is given up for the others) in n + 1 variables however many rows there are.
+If that fails too the filter holds (u* = 0). The mode says which happened; the output is always finite. A state that is
 already inside a barrier (h < −1 mm: the person moved into the robot faster than it could
 retreat) is reported as RELAXED too: the constraints are not being honoured there.
+
+With ``enforce`` off the rows are still evaluated (h is monitored) but left out of the QP, so
+u* = clip(u_ref) within the bounds: the same integrator without the safety layer (the offline
+evaluator's no-CBF run).
 """
 
 from __future__ import annotations
@@ -72,6 +77,8 @@ class SafetyFilter:
 
     def __init__(self, kinematics, barrier: CapsuleBarrier, params: FilterParams, backend: str = "daqp") -> None:
         self.kinematics = kinematics
+        #: Whether the CBF rows constrain the QP (False: rows only monitored, u* = clip(u_ref)).
+        self.enforce = True
         self.barrier = barrier
         self.params = params
         self.backend_name = backend
@@ -101,13 +108,14 @@ class SafetyFilter:
         upper = np.minimum(p.u_max, (self.q_max - q) / dt)
         u_min = -p.u_max if p.u_min is None else p.u_min
         lower = np.minimum(np.maximum(u_min, (self.q_min - q) / dt), upper)
-        problem = QPProblem(w=p.weights, u_ref=u_ref, A=rows.A, b=rows.b, lower=lower, upper=upper)
+        A, b = (rows.A, rows.b) if self.enforce else (rows.A[:0], rows.b[:0])
+        problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
         u = solution.u
         if u is not None:
             mode = SafetyMode.ACTIVE if solution.active_rows else SafetyMode.NOMINAL
-            if rows.min_h_all < -VIOLATION_TOL:
+            if self.enforce and rows.min_h_all < -VIOLATION_TOL:
                 mode = SafetyMode.RELAXED
             active = solution.active_rows
         else:
@@ -128,13 +136,12 @@ class SafetyFilter:
         )
 
     def _relaxed(self, problem: QPProblem) -> QPProblem:
-        """[u; σ]: min ½‖u − u_ref‖²_W + ½ρ‖σ‖²  s.t.  A u + σ ≥ b,  σ ∈ [0, ∞)."""
-        m = problem.m
+        """[u; σ]: min ½‖u − u_ref‖²_W + ½ρσ²  s.t.  A u + σ 1 ≥ b,  σ ∈ [0, ∞)."""
         return QPProblem(
-            w=np.concatenate([problem.w, np.full(m, self.params.relax_penalty)]),
-            u_ref=np.concatenate([problem.u_ref, np.zeros(m)]),
-            A=np.hstack([problem.A, np.eye(m)]),
+            w=np.append(problem.w, self.params.relax_penalty),
+            u_ref=np.append(problem.u_ref, 0.0),
+            A=np.hstack([problem.A, np.ones((problem.m, 1))]),
             b=problem.b,
-            lower=np.concatenate([problem.lower, np.zeros(m)]),
-            upper=np.concatenate([problem.upper, np.full(m, _SLACK_MAX)]),
+            lower=np.append(problem.lower, 0.0),
+            upper=np.append(problem.upper, _SLACK_MAX),
         )
