@@ -4,12 +4,13 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: help install test bench demo clean
+.PHONY: help install test bench demo figures clean
 
 help:
-	@echo "make demo   run the stack end to end on this machine and print what happens"
-	@echo "make test   run the whole test suite (real Zenoh, MuJoCo, Pinocchio, QP solvers)"
-	@echo "make bench  run the benchmarks, print a table, write JSON under bench/results/"
+	@echo "make demo     run the stack end to end on this machine and print what happens"
+	@echo "make test     run the whole test suite (real Zenoh, MuJoCo, Pinocchio, QP solvers)"
+	@echo "make bench    run the benchmarks, print a table, write JSON under bench/results/"
+	@echo "make figures  evaluate the paper's two scenarios with and without the CBF: README figures in docs/figures/"
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +27,14 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m safemimic.cli bench
+
+# The paper's two scenarios (Figs. 2-3), each run with and without the CBF layer: metrics.json,
+# joints.png, barriers.png and snapshot.png per scenario in docs/figures/ (shown in README.md).
+FIGURE_SCENARIOS := cross-arm-reach side-by-side-arm-raise
+figures: $(STAMP)
+	@for scenario in $(FIGURE_SCENARIOS); do \
+		$(PY) -m safemimic.cli evaluate --scenario $$scenario --placement side-by-side --out docs/figures/$$scenario || exit 1; \
+	done
 
 demo: $(STAMP)
 	$(PY) -m safemimic.cli demo

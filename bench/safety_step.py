@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from bench.common import percentiles_us
-from services.safety.assembly import build_pipeline
+from services.safety.assembly import build_pipeline, make_geometry
 from services.safety.barrier import CapsuleBarrier
 from services.safety.filter import FilterParams, SafetyFilter
 from services.safety.pairs import N_ROBOT, PairSet, sized_pair_set
@@ -144,9 +144,10 @@ class Run:
     cpu_s: np.ndarray  # thread CPU time of each step (excludes preemption by other processes)
 
 
-def _make_filter(kinematics, pairs: PairSet, conf, backend: str) -> SafetyFilter:
-    """As assembly.build_pipeline does: a CapsuleBarrier of ``pairs`` and a SafetyFilter."""
-    barrier = CapsuleBarrier(pairs, kinematics.radii, len(kinematics.joint_names))
+def make_filter(kinematics, pairs: PairSet, conf, backend: str) -> SafetyFilter:
+    """As assembly.build_pipeline does: the configured collision geometry (``safety.geometry``,
+    capsules by default) of ``pairs`` with the scene's people, and a SafetyFilter."""
+    barrier = make_geometry(conf, pairs, kinematics)
     ends, radii = external_capsules(pairs.n_external)
     barrier.set_external(ends, radii, np.ones(len(radii), bool), np.zeros_like(ends))
     return SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), backend)
@@ -524,10 +525,10 @@ def run(steps: int = STEPS) -> dict[str, Any]:
     runners: dict[str, Any] = {default_backend: FilterRunner(pipeline.filter, q_nom, steps)}
     for name in ("daqp", "osqp"):
         if name != default_backend:
-            runners[name] = FilterRunner(_make_filter(kin, pairs, conf, name), q_nom, steps)
+            runners[name] = FilterRunner(make_filter(kin, pairs, conf, name), q_nom, steps)
     sized_pairs = {n_rows: sized_pair_set(self_pairs, n_rows) for n_rows in (400, 126)}
     for n_rows, p in sized_pairs.items():
-        runners[f"rows{n_rows}"] = FilterRunner(_make_filter(kin, p, conf, default_backend), q_nom, steps)
+        runners[f"rows{n_rows}"] = FilterRunner(make_filter(kin, p, conf, default_backend), q_nom, steps)
     runners["mink"] = MinkRunner(anchor, q_nom, steps)
     runners["mink_default"] = MinkRunner(anchor_default, q_nom, steps)
     gc.collect()

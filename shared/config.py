@@ -93,6 +93,14 @@ class PairGroup(str, Enum):
     HUMAN = "human"
 
 
+class GeometryName(str, Enum):
+    """Collision geometry of the CBF rows (paper §IV-B, Table I; services.safety.geometry)."""
+
+    CAPSULE = "capsule"
+    SPHERES = "spheres"
+    BOX = "box"
+
+
 class SafetyConfig(_Section):
     """CBF-QP parameters (paper eqs. 3–9; DESIGN §4)."""
 
@@ -105,7 +113,13 @@ class SafetyConfig(_Section):
     u_max: JointVector = Field(default_factory=lambda: [4.0] * N_JOINTS)
     backend: QPBackendName = QPBackendName.DAQP
     pairs: str = Field(default="default", pattern=r"^[a-z0-9_]+$")
+    geometry: GeometryName = Field(default=GeometryName.CAPSULE, description="collision geometry of the CBF rows")
+    sphere_k: int = Field(default=1, ge=0, le=3, description="spheres: levels of subsampling k (each halves the spacing)")
     human_velocity_term: bool = True
+    human_lookahead_s: float = Field(
+        default=0.04, ge=0, le=1,
+        description="an approaching person is anticipated this far ahead (s): one camera frame plus the pipeline latency",
+    )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
     relax_penalty: float = Field(default=1e4, gt=0)
     u_min: NegativeJointVector | None = Field(default=None, description="lower velocity bound per joint (rad/s); null: −u_max")
@@ -131,6 +145,70 @@ class SafetyConfig(_Section):
         return self
 
 
+PositiveJointVector = Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+NonNegativeJointVector = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+
+
+class ExecutorBackend(str, Enum):
+    MUJOCO = "mujoco"
+    G1 = "g1"
+
+
+class G1Mode(str, Enum):
+    """How the G1 executor commands the robot: ``rt/arm_sdk`` (upper body blended over the running
+    balance controller) or ``rt/lowcmd`` (every motor; the balance controller must be released)."""
+
+    ARM_SDK = "arm_sdk"
+    LOWCMD = "lowcmd"
+
+
+class G1Waist(str, Enum):
+    """Whether waist roll/pitch can move: from ``LowState_.mode_machine`` (auto) or as configured."""
+
+    AUTO = "auto"
+    LOCKED = "locked"
+    UNLOCKED = "unlocked"
+
+
+class G1LockedWaistPolicy(str, Enum):
+    """What to do when the waist is locked but imitated: refuse to start, or imitate the arms only."""
+
+    REFUSE = "refuse"
+    ARMS_ONLY = "arms_only"
+
+
+class G1Config(_Section):
+    """The Unitree G1 hardware executor (``--backend g1``, DESIGN §11). Vectors are per imitation
+    joint, in the robot description's order."""
+
+    mode: G1Mode = G1Mode.ARM_SDK
+    network_interface: str | None = Field(
+        default=None, pattern=r"^[A-Za-z0-9_.:\-]{1,64}$",
+        description="interface facing the robot (e.g. eth0); null: CycloneDDS's choice or $CYCLONEDDS_URI",
+    )
+    domain_id: int = Field(default=0, ge=0, le=232, description="DDS domain (the robot uses 0)")
+    dry_run: bool = Field(default=False, description="read rt/lowstate, build and check every frame, print them, send nothing")
+    waist: G1Waist = G1Waist.AUTO
+    on_locked_waist: G1LockedWaistPolicy = G1LockedWaistPolicy.REFUSE
+    ramp_in_s: float = Field(default=3.0, gt=0, le=60, description="blend weight 0 → 1 from the measured pose (s)")
+    ramp_out_s: float = Field(default=2.0, gt=0, le=60, description="blend weight → 0 on stop, timeout or fault (s)")
+    command_timeout_s: float = Field(default=0.3, gt=0, le=10, description="no new target for this long: ramp out (s)")
+    state_timeout_s: float = Field(default=0.1, gt=0, le=10, description="no rt/lowstate for this long: ramp out (s)")
+    state_wait_s: float = Field(default=5.0, gt=0, le=120, description="start fails without rt/lowstate within this time (s)")
+    kp: PositiveJointVector = Field(default_factory=lambda: [60.0] * N_JOINTS, description="servo stiffness (N·m/rad)")
+    kd: NonNegativeJointVector = Field(default_factory=lambda: [1.5] * N_JOINTS, description="servo damping (N·m·s/rad)")
+    max_speed: PositiveJointVector = Field(
+        default_factory=lambda: [3.0, 3.0, 6.0, 6.0, 6.0, 6.0, 6.0, 6.0],
+        description="the sent target moves at most this fast (rad/s)",
+    )
+    position_margin: float = Field(default=0.05, ge=0, le=0.3, description="targets stay this far inside the joint range (rad)")
+    torque_fraction: float = Field(
+        default=0.8, gt=0, le=1, description="targets stay within torque_fraction · limit / kp of the measured angle"
+    )
+    fault_speed: float = Field(default=10.0, gt=0, le=50, description="a measured joint faster than this latches a fault (rad/s)")
+    dry_run_print_s: float = Field(default=0.5, gt=0, le=60, description="dry run: one frame printed this often (s)")
+
+
 class ExecutorConfig(_Section):
     """Simulated (or hardware) executor: joint PD gains and rates."""
 
@@ -151,6 +229,8 @@ class ExecutorConfig(_Section):
         default=True, description="simulation: the servos add the links' gravity torque (within their torque limits)"
     )
     stats_interval_s: float = Field(default=5.0, gt=0, le=3600, description="one-line summary this often (s)")
+    backend: ExecutorBackend = Field(default=ExecutorBackend.MUJOCO, description="mujoco (simulation) | g1 (the real robot)")
+    g1: G1Config = Field(default_factory=G1Config)
 
     @model_validator(mode="after")
     def _positive_joint_gains(self) -> ExecutorConfig:

@@ -118,6 +118,13 @@ class RobotSpec(BaseModel):
         default_factory=dict,
         description="imitation joint -> (min, max) (rad), overriding (tightening) the model's range",
     )
+    joint_barriers: dict[str, tuple[float | None, float | None]] = Field(
+        default_factory=dict,
+        description="imitation joint -> (lower, upper) (rad; null: none) kept by the CBF as joint-space "
+        "barriers h = q - lower >= 0, h = upper - q >= 0: contacts between links the capsules cannot "
+        "see (the upper arm and the torso capsules overlap at the shoulder by construction); unlike "
+        "limits, the retargeted target and a run without the CBF may go past them",
+    )
     retarget_sign: list[float] = Field(
         default_factory=lambda: [1.0] * 8,
         min_length=8,
@@ -196,6 +203,12 @@ class RobotSpec(BaseModel):
         extra = sorted(set(self.limits) - set(self.imitation_joints))
         if extra:
             raise ValueError(f"limits given for joints that are not imitation joints: {extra}")
+        for joint, (lo, hi) in self.joint_barriers.items():
+            if joint not in self.imitation_joints:
+                raise ValueError(f"joint_barriers given for {joint!r}, which is not an imitation joint")
+            h = self.home.get(joint, 0.0)
+            if not ((lo is None or (math.isfinite(lo) and lo < h)) and (hi is None or (math.isfinite(hi) and h < hi))):
+                raise ValueError(f"joint_barriers[{joint!r}] = ({lo}, {hi}) must be finite and leave home {h} strictly inside")
         for joint, (lo, hi) in self.limits.items():
             h = self.home.get(joint, 0.0)
             if not lo <= h <= hi:

@@ -55,7 +55,8 @@ def test_rows_match_central_finite_differences(pipeline) -> None:
 
 
 def test_human_rows_have_zero_jacobian_for_human_and_velocity_term(pipeline) -> None:
-    """b = −γ h + nᵀ v_pB equals −γ h − ∂h/∂t when the human capsule moves with velocity v."""
+    """b = −γ (h − T a) + a with the approach speed a = max(nᵀ v_pB, 0) = max(−∂h/∂t, 0) when the
+    human capsule moves with velocity v: approaching capsules tighten the row, receding ones never relax it."""
     rng = np.random.default_rng(5)
     kin = pipeline.kinematics
     q = kin.q_home.copy()
@@ -71,8 +72,11 @@ def test_human_rows_have_zero_jacobian_for_human_and_velocity_term(pipeline) -> 
     h_minus = pipeline.filter.rows_at(q).h
     dh_dt = (h_plus - h_minus) / (2 * dt)
     human = ~rows.is_self & (rows.distance > 1e-3)
-    gamma = pipeline.filter.params.gamma
-    np.testing.assert_allclose(rows.b[human], -gamma * rows.h[human] - dh_dt[human], atol=1e-6)
+    gamma, lookahead = pipeline.filter.params.gamma, pipeline.filter.params.human_lookahead_s
+    assert lookahead > 0
+    approach = np.maximum(-dh_dt[human], 0.0)
+    assert approach.any() and (approach == 0).any(), "the draw must hold approaching and receding capsules"
+    np.testing.assert_allclose(rows.b[human], -gamma * (rows.h[human] - lookahead * approach) + approach, atol=1e-6)
     np.testing.assert_allclose(rows.b[rows.is_self], -gamma * rows.h[rows.is_self], atol=1e-12)
 
 

@@ -186,7 +186,8 @@ def test_health_and_config_read(api: ApiServer) -> None:
     assert body["joint_names"][0] == "waist_roll_joint" and len(body["capsule_names"]) == 7
     safety = body["safety"]
     # the names, mapped onto the configuration explicitly
-    assert set(safety) == {"gamma", "phi", "k", "w", "u_min", "u_max", "dt", "enabled_pair_groups", "capsule_radii", "human_velocity_term"}
+    assert set(safety) == {"gamma", "phi", "k", "w", "u_min", "u_max", "dt", "enabled_pair_groups", "capsule_radii", "human_velocity_term",
+                           "geometry", "sphere_k"}
     assert safety["dt"] == pytest.approx(1.0 / body["config"]["safety"]["rate_hz"])
     assert safety["k"] == body["config"]["safety"]["gain"] and safety["w"] == body["config"]["safety"]["weights"]
     assert set(body["retarget"]) == {"S", "b", "q_home", "theta_home", "mirror"}

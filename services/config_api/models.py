@@ -15,7 +15,7 @@ from datetime import datetime
 from typing import Annotated, Any, Literal
 
 import annotated_types
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, Strict
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, Strict
 
 from services.config_api.store import HistoryEntry
 from shared.bus import Received
@@ -23,6 +23,7 @@ from shared.config import (
     N_JOINTS,
     CapsuleName,
     CapsuleRadius,
+    GeometryName,
     HumanConfig,
     PairGroup,
     RetargetingConfig,
@@ -37,6 +38,12 @@ def _like(section: type[BaseModel], name: str) -> Any:
     """The type and bounds of the number field ``section.name`` of the configuration, strict."""
     info = section.model_fields[name]
     return Annotated[info.annotation, Strict(), *info.metadata]
+
+
+def _whole_number(value: Any) -> Any:
+    """A JSON number with no fraction is an integer (JSON Schema): 2.0 → 2; strings and booleans stay
+    refused by the strict int that follows."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
 def _vector(ge: float | None = None, le: float | None = None, gt: float | None = None, lt: float | None = None) -> Any:
@@ -73,6 +80,8 @@ SAFETY_FIELDS: dict[str, str] = {
     "capsule_radii.human.forearm": "human.forearm_radius",
     "capsule_radii.human.thigh": "human.thigh_radius",
     "human_velocity_term": "safety.human_velocity_term",
+    "geometry": "safety.geometry",
+    "sphere_k": "safety.sphere_k",
 }
 #: PATCH /api/config/retarget field → configuration field (dotted path).
 RETARGET_FIELDS: dict[str, str] = {
@@ -83,7 +92,7 @@ RETARGET_FIELDS: dict[str, str] = {
     "mirror": "retargeting.mirror",
 }
 #: Safety request fields whose value goes into the configuration unchanged.
-_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "human_velocity_term"}
+_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "human_velocity_term", "sphere_k"}
 #: Configuration field → request field, to name the request's field in errors found on the whole config.
 REQUEST_FIELD: dict[str, str] = {path: name for name, path in (SAFETY_FIELDS | RETARGET_FIELDS).items()}
 
@@ -136,6 +145,10 @@ class SafetyPatch(_Patch):
     enabled_pair_groups: set[PairGroup] = Field(None, description="pair groups whose CBF rows are enforced")
     capsule_radii: CapsuleRadiiPatch = None
     human_velocity_term: StrictBool = Field(None, description="use the person's measured capsule velocities as a known ∂h/∂t")
+    geometry: GeometryName = Field(None, description="collision geometry of the CBF rows: capsule | spheres | box (paper Table I)")
+    sphere_k: Annotated[_like(SafetyConfig, "sphere_k"), BeforeValidator(_whole_number)] = Field(
+        None, description="spheres: levels of subsampling k"
+    )
 
     def changes(self, current: StackConfig) -> dict[str, Any]:
         """The configuration fields this patch sets on ``current`` (dotted path → new value)."""
@@ -143,6 +156,8 @@ class SafetyPatch(_Patch):
         values = {SAFETY_FIELDS[name]: getattr(self, name) for name in given & _DIRECT_SAFETY}
         if "dt" in given:
             values[SAFETY_FIELDS["dt"]] = 1.0 / self.dt
+        if "geometry" in given:
+            values[SAFETY_FIELDS["geometry"]] = self.geometry.value
         if "enabled_pair_groups" in given:
             values[SAFETY_FIELDS["enabled_pair_groups"]] = [g.value for g in PairGroup if g in self.enabled_pair_groups]
         radii = self.capsule_radii
@@ -198,6 +213,8 @@ class SafetyParams(_View):
     enabled_pair_groups: list[PairGroup]
     capsule_radii: CapsuleRadii
     human_velocity_term: bool
+    geometry: GeometryName
+    sphere_k: int
 
     @classmethod
     def from_config(cls, conf: StackConfig) -> SafetyParams:
@@ -210,6 +227,8 @@ class SafetyParams(_View):
                 human=HumanRadii(torso=h.torso_radius, upper_arm=h.upper_arm_radius, forearm=h.forearm_radius, thigh=h.thigh_radius),
             ),
             human_velocity_term=s.human_velocity_term,
+            geometry=s.geometry,
+            sphere_k=s.sphere_k,
         )
 
 

@@ -2,7 +2,8 @@
 
 Subscribes to ``robot/command`` (:class:`~shared.messages.JointCommand`) and ``human/state``
 (:class:`~shared.messages.HumanState`), drives an :class:`~services.executor.interface.Executor`
-(here the MuJoCo simulation) at ``executor.rate_hz`` in real time and publishes
+(``executor.backend``: the MuJoCo simulation, or the real Unitree G1 through
+:mod:`services.executor.g1_executor`) at ``executor.rate_hz`` in real time and publishes
 ``robot/joint_state`` (:class:`~shared.messages.JointState`) at ``executor.state_rate_hz``.
 Holds the liveliness token ``alive/executor``.
 
@@ -37,17 +38,15 @@ import threading
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from services.executor.contacts import ContactTally
 from services.executor.interface import Executor
-from services.executor.mujoco_executor import MujocoExecutor
-from services.executor.sim import PDGains, SimModelError
 from shared.bus import Bus, Latest, Received
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, StackConfig
+from shared.config import ConfigError, ExecutorBackend, StackConfig
 from shared.messages import HumanState, JointCommand, JointState
 from shared.robot_spec import RobotSpecError, configured_robot_spec
 
@@ -62,18 +61,50 @@ _TICK_TIME_WINDOW = 10_000
 _MAX_CONSECUTIVE_ERRORS = 100
 
 
+@runtime_checkable
+class ReportsCounters(Protocol):
+    """An executor with counters of its own (the G1's ramps, faults, frames) for the final report."""
+
+    def counters(self) -> dict[str, Any]: ...
+
+
+def build_executor(conf: StackConfig) -> Executor:
+    """The executor of ``executor.backend``, its modules imported only then: the simulation needs
+    MuJoCo, the G1 CycloneDDS, and neither needs the other."""
+    c = conf.executor
+    spec = configured_robot_spec(conf)
+    if c.backend is ExecutorBackend.G1:
+        from services.executor.g1_executor import G1Executor
+
+        return G1Executor(spec, c.g1, 1.0 / c.rate_hz)
+    from services.executor.mujoco_executor import MujocoExecutor
+    from services.executor.sim import PDGains
+
+    return MujocoExecutor(spec, PDGains.from_config(c), 1.0 / c.rate_hz, c.viewer)
+
+
+def startup_errors(backend: ExecutorBackend) -> tuple[type[Exception], ...]:
+    """The exceptions with which a backend refuses to start (reported in one line, exit code 2)."""
+    if backend is ExecutorBackend.G1:
+        from services.executor.g1_control import G1StartError
+
+        return (G1StartError,)
+    from services.executor.sim import SimModelError
+
+    return (SimModelError,)
+
+
 class ExecutorService:
     """The executor service's state and one control tick; :meth:`run` drives it in real time.
 
-    ``executor`` defaults to a :class:`~services.executor.mujoco_executor.MujocoExecutor` of the
-    configured robot; ``bus`` to a new :class:`~shared.bus.Bus` from ``conf.bus`` (closed by
-    :meth:`close`). The executor is started here and stopped by :meth:`close`.
+    ``executor`` defaults to :func:`build_executor` (``executor.backend`` of the configured
+    robot); ``bus`` to a new :class:`~shared.bus.Bus` from ``conf.bus`` (closed by :meth:`close`).
+    The executor is started here and stopped by :meth:`close`.
     """
 
     def __init__(self, conf: StackConfig, executor: Executor | None = None, bus: Bus | None = None) -> None:
         self.conf = conf
-        c = conf.executor
-        self.executor = executor or MujocoExecutor(configured_robot_spec(conf), PDGains.from_config(c), 1.0 / c.rate_hz, c.viewer)
+        self.executor = executor or build_executor(conf)
         n = len(self.executor.joint_names)
         self.ticks = 0
         self.deadline_misses = 0
@@ -261,6 +292,8 @@ class ExecutorService:
             "dropped": self.dropped(),
             "contacts": self.tally.summary(),
         }
+        if isinstance(self.executor, ReportsCounters):
+            out["robot"] = self.executor.counters()
         if elapsed_s is not None:
             out["elapsed_s"] = elapsed_s
             out["achieved_hz"] = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
@@ -268,7 +301,7 @@ class ExecutorService:
 
 
 def main(conf: StackConfig, stop: threading.Event, duration: float | None = None) -> dict[str, Any]:
-    """Run the executor service (MuJoCo) until ``stop`` is set or ``duration`` s passed; counters."""
+    """Run the executor service until ``stop`` is set or ``duration`` s passed; counters."""
     with ExecutorService(conf) as service:
         return service.run(stop, duration)
 
@@ -279,7 +312,9 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         "Run the executor: a MuJoCo simulation of the robot (pelvis welded) that follows JointCommands "
         "at executor.rate_hz in real time, holds the last position when commands stop, shows the "
         "person's capsules from HumanState, counts robot-robot and robot-human contacts and publishes "
-        "JointState at executor.state_rate_hz. Headless unless --viewer."
+        "JointState at executor.state_rate_hz. Headless unless --viewer. With --backend g1 it drives a "
+        "real Unitree G1 over CycloneDDS instead (rt/arm_sdk or rt/lowcmd, settings in executor.g1; "
+        "README: 'Running on a real G1')."
     )
     add_bus_arguments(parser)
     parser.add_argument("--robot-model", metavar="PATH",
@@ -288,6 +323,12 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument("--viewer", action="store_true",
                         help="open MuJoCo's passive viewer (needs a display; otherwise a warning and headless)")
     parser.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this many seconds")
+    g1 = parser.add_argument_group("real robot")
+    g1.add_argument("--backend", choices=[b.value for b in ExecutorBackend],
+                    help="mujoco (simulation) or g1 (the real Unitree G1); default: executor.backend")
+    g1.add_argument("--interface", metavar="IFACE", help="g1: network interface facing the robot, e.g. eth0")
+    g1.add_argument("--dry-run", action="store_true",
+                    help="g1: read rt/lowstate, build and check every frame, print them, send nothing")
     return parser
 
 
@@ -295,8 +336,20 @@ def run(args: argparse.Namespace) -> int:
     extra: dict[str, Any] = {}
     if args.robot_model:
         extra["robot"] = {"model": str(Path(args.robot_model).expanduser().resolve())}
+    executor: dict[str, Any] = {}
     if args.viewer:
-        extra["executor"] = {"viewer": True}
+        executor["viewer"] = True
+    if args.backend:
+        executor["backend"] = args.backend
+    g1: dict[str, Any] = {}
+    if args.interface:
+        g1["network_interface"] = args.interface
+    if args.dry_run:
+        g1["dry_run"] = True
+    if g1:
+        executor["g1"] = g1
+    if executor:
+        extra["executor"] = executor
     if args.duration is not None and not args.duration > 0:
         print("--duration must be > 0", file=sys.stderr)
         return 2
@@ -305,8 +358,13 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     try:
         conf = config_from_args(args, extra)
+        refusals = (ConfigError, RobotSpecError, *startup_errors(conf.executor.backend))
+    except (ConfigError, RobotSpecError) as exc:
+        print(f"safemimic executor: {exc}", file=sys.stderr)
+        return 2
+    try:
         counters = main(conf, stop, args.duration)
-    except (ConfigError, RobotSpecError, SimModelError) as exc:
+    except refusals as exc:
         print(f"safemimic executor: {exc}", file=sys.stderr)
         return 2
     print(json.dumps({"event": "stopped", "service": SERVICE_NAME, **counters}), flush=True)

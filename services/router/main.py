@@ -21,7 +21,10 @@ def main(conf: StackConfig, stop: threading.Event) -> None:
     with open_session(conf.bus) as session:
         endpoints = ", ".join(conf.bus.listen) or "zenoh defaults"
         print(f"zenoh router {session.zid()} listening on {endpoints}", flush=True)
-        stop.wait()
+        # Wake up now and then: SIGTERM may be delivered to one of zenoh's threads, and Python runs
+        # the handler (which sets ``stop``) only when the main thread wakes; an untimed wait can hang.
+        while not stop.wait(0.2):
+            pass
     print("zenoh router stopped", flush=True)
 
 

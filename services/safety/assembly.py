@@ -8,10 +8,13 @@ import numpy as np
 
 from services.safety.barrier import CapsuleBarrier
 from services.safety.filter import FilterParams, SafetyFilter
+from services.safety.geometry.base import CollisionGeometry
+from services.safety.geometry.boxes import BoxBarrier
+from services.safety.geometry.spheres import SphereBarrier, nominal_human
 from services.safety.kinematics import RobotKinematics
-from services.safety.pairs import PairSet, preset_pair_set, select_groups
+from services.safety.pairs import N_ROBOT, PairSet, preset_pair_set, select_groups
 from services.safety.retarget import Retargeter
-from shared.config import StackConfig
+from shared.config import GeometryName, StackConfig
 from shared.robot_spec import RobotSpec, configured_robot_spec
 
 
@@ -22,7 +25,7 @@ class SafetyPipeline:
     spec: RobotSpec
     kinematics: RobotKinematics
     pairs: PairSet
-    barrier: CapsuleBarrier
+    barrier: CollisionGeometry
     filter: SafetyFilter
     retargeter: Retargeter
 
@@ -50,12 +53,25 @@ def robot_radii(conf: StackConfig, kinematics: RobotKinematics) -> np.ndarray:
     return radii
 
 
+def make_geometry(conf: StackConfig, pairs: PairSet, kinematics: RobotKinematics) -> CollisionGeometry:
+    """The configured collision geometry (``safety.geometry``; spheres with ``safety.sphere_k``
+    levels of subsampling) over ``pairs``, with the configured robot radii."""
+    radii, n = robot_radii(conf, kinematics), len(kinematics.joint_names)
+    geometry = conf.safety.geometry
+    if geometry is GeometryName.SPHERES:
+        external = np.tile(nominal_human(conf.human), (pairs.n_external // N_ROBOT, 1))  # per person
+        return SphereBarrier(pairs, kinematics.capsule_local, radii, n, conf.safety.sphere_k, external)
+    if geometry is GeometryName.BOX:
+        return BoxBarrier(pairs, kinematics, radii, n)
+    return CapsuleBarrier(pairs, radii, n)
+
+
 def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics: RobotKinematics | None = None) -> SafetyPipeline:
     """Assemble the safety pipeline for ``conf`` (optionally another pair preset / shared kinematics)."""
     spec = configured_robot_spec(conf) if kinematics is None else kinematics.spec
     kinematics = kinematics or RobotKinematics(spec)
     pairs = preset_pair_set(pair_preset or conf.safety.pairs, [tuple(p) for p in spec.self_pairs])
     pairs = select_groups(pairs, {group.value for group in conf.safety.enabled_pair_groups})
-    barrier = CapsuleBarrier(pairs, robot_radii(conf, kinematics), len(kinematics.joint_names))
+    barrier = make_geometry(conf, pairs, kinematics)
     safety_filter = SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), conf.safety.backend.value)
     return SafetyPipeline(spec, kinematics, pairs, barrier, safety_filter, make_retargeter(conf, spec, kinematics))

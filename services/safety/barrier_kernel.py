@@ -70,11 +70,12 @@ def pair_distances(endpoints, radii, first, second, phi, eps, distance, h, s_out
 
 
 @njit(cache=True, nogil=True)
-def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, A, b):  # pragma: no cover - compiled
-    """CBF rows A u ≥ b: A_i = nᵀ(J_pA − J_pB), b_i = −γ h_i + nᵀ v_pB.
+def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b):  # pragma: no cover - compiled
+    """CBF rows A u ≥ b: A_i = nᵀ(J_pA − J_pB), b_i = −γ (h_i − T a_i) + a_i with a_i = max(nᵀ v_pB, 0).
 
     ``jacobians`` (n_robot, 2, 3, n) are the robot endpoint Jacobians; ``velocities`` (S, 2, 3)
-    the known endpoint velocities of external capsules (zero for robot capsules).
+    the known endpoint velocities of external capsules (zero for robot capsules); ``lookahead``
+    T (s) how far ahead an approaching capsule is anticipated (see barrier.py).
     """
     n_joints = jacobians.shape[3]
     for i in range(first.shape[0]):
@@ -92,4 +93,5 @@ def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, ga
         if ib >= n_robot:
             for c in range(3):
                 v_known += normal[i, c] * (wb0 * velocities[ib, 0, c] + wb1 * velocities[ib, 1, c])
-        b[i] = -gamma * h[i] + v_known
+        approach = max(v_known, 0.0)
+        b[i] = -gamma * (h[i] - lookahead * approach) + approach

@@ -12,6 +12,9 @@ If that fails too the filter holds (u* = 0). The mode says which happened; the o
 already inside a barrier (h < −1 mm: the person moved into the robot faster than it could
 retreat) is reported as RELAXED too: the constraints are not being honoured there.
 
+The robot description's joint barriers (``joint_barriers``: links the capsules cannot see) add
+one row each: u_j ≥ −γ (q_j − lower_j) or −u_j ≥ −γ (upper_j − q_j).
+
 With ``enforce`` off the rows are still evaluated (h is monitored) but left out of the QP, so
 u* = clip(u_ref) within the bounds: the same integrator without the safety layer (the offline
 evaluator's no-CBF run).
@@ -44,6 +47,7 @@ class FilterParams:
     u_max: np.ndarray
     relax_penalty: float
     u_min: np.ndarray | None = None  # lower velocity bound (n,); None: −u_max
+    human_lookahead_s: float = 0.0  # T of the human velocity term (s; see barrier.py)
 
     @classmethod
     def from_config(cls, safety) -> FilterParams:  # shared.config.SafetyConfig
@@ -55,6 +59,7 @@ class FilterParams:
             u_max=np.asarray(safety.u_max, dtype=np.float64),
             relax_penalty=safety.relax_penalty,
             u_min=None if safety.u_min is None else np.asarray(safety.u_min, dtype=np.float64),
+            human_lookahead_s=safety.human_lookahead_s,
         )
 
 
@@ -72,6 +77,18 @@ class StepResult:
     qp_status: QPStatus
 
 
+def _joint_barriers(spec, joint_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Joint-barrier rows (k, n) and per row: joint index, sign, bound (sign (q_j − bound) ≥ 0 holds)."""
+    rows = []
+    for joint, (lower, upper) in spec.joint_barriers.items():
+        j = joint_names.index(joint)
+        rows += [(j, 1.0, lower)] if lower is not None else []
+        rows += [(j, -1.0, upper)] if upper is not None else []
+    index, sign, bound = (np.array(v, dtype=float) for v in (zip(*rows) if rows else ((), (), ())))
+    index = index.astype(np.intp)
+    return sign[:, None] * np.eye(len(joint_names))[index], index, sign, bound
+
+
 class SafetyFilter:
     """Holds q_cbf and filters nominal targets through the capsule CBF-QP."""
 
@@ -87,6 +104,7 @@ class SafetyFilter:
         self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
         self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
+        self._joint_barriers = _joint_barriers(kinematics.spec, kinematics.joint_names)
 
     def reset(self, q: np.ndarray) -> None:
         """Restart integration from configuration ``q`` (e.g. the measured joint state)."""
@@ -97,7 +115,8 @@ class SafetyFilter:
     def rows_at(self, q: np.ndarray) -> BarrierRows:
         """The barrier rows at configuration ``q`` (no QP, no state change)."""
         endpoints, jacobians = self.kinematics.compute(q)
-        return self.barrier.evaluate(endpoints, jacobians, self.params.gamma, self.params.phi)
+        p = self.params
+        return self.barrier.evaluate(endpoints, jacobians, p.gamma, p.phi, p.human_lookahead_s)
 
     def step(self, q_nom: np.ndarray, dt: float) -> StepResult:
         """One control step towards ``q_nom`` (n,) over ``dt`` seconds."""
@@ -108,7 +127,12 @@ class SafetyFilter:
         upper = np.minimum(p.u_max, (self.q_max - q) / dt)
         u_min = -p.u_max if p.u_min is None else p.u_min
         lower = np.minimum(np.maximum(u_min, (self.q_min - q) / dt), upper)
-        A, b = (rows.A, rows.b) if self.enforce else (rows.A[:0], rows.b[:0])
+        if self.enforce:
+            joint_rows, index, sign, bound = self._joint_barriers
+            A = np.vstack([rows.A, joint_rows])
+            b = np.concatenate([rows.b, -p.gamma * sign * (q[index] - bound)])
+        else:
+            A, b = rows.A[:0], rows.b[:0]
         problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s

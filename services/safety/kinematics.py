@@ -408,6 +408,27 @@ class RobotKinematics:
         shape = self._endpoints.shape
         return ends.reshape(shape), jac.reshape(shape + (model.nv,))
 
+    def capsule_frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """World rotations (7, 3, 3) of the capsules' bodies and their angular Jacobians (7, 3, 8)
+        (``dω/dq`` in world axes), at the configuration of the last :meth:`compute` call.
+
+        With them a point p fixed in capsule c's body has the Jacobian
+        J_p = J_a − [p − a]_× J_ω  (LOCAL_WORLD_ALIGNED), a being the capsule's endpoint ``a``
+        whose Jacobian :meth:`compute` returned: what a box witness point needs
+        (:mod:`services.safety.geometry.boxes`). Returns new arrays.
+        """
+        model, data = self._model, self._data
+        n_cap = len(CAPSULE_NAMES)
+        rotations = np.empty((n_cap, 3, 3))
+        angular = np.empty((n_cap, 3, model.nv))
+        for c in range(n_cap):
+            fid = int(self._frame_ids[2 * c])  # endpoint a's frame: the body's rotation
+            rotations[c] = data.oMf[fid].rotation
+            angular[c] = pin.getFrameJacobian(model, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[3:]
+        if not self._identity_order:
+            angular = angular[..., self._idx_v]
+        return rotations, angular
+
     def frame_position(self, name: str, q: np.ndarray) -> np.ndarray:
         """World position (3,) of any body/joint/frame ``name`` of the reduced model at ``q``."""
         if not self._model.existFrame(name):

@@ -11,7 +11,8 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    barrier's external capsules and θ is retargeted to q_nom. No human yet: no external capsules,
    q_nom = q_cbf (hold). A human state older than ``safety.human_timeout_s`` (local receive time)
    keeps its capsules — the person may still be there — without their velocity term, holds q_nom
-   and marks the status ``human_stale``;
+   and marks the status ``human_stale``; so does the disappearance of the perception service's
+   liveliness token (its host crashed or its link was cut: noticed within the Zenoh lease);
 4. one CBF-QP step with Δt = the nominal period; the command (q_cbf, u*) is checked finite and
    published on ``robot/command`` (a non-finite one is replaced by the last command, counted);
 5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`.
@@ -51,6 +52,8 @@ from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, 
 log = logging.getLogger("safemimic.safety")
 
 SERVICE_NAME = "safety"
+#: The liveliness token (``alive/{name}``) of the human source: while it is absent the human is stale.
+HUMAN_SOURCE_SERVICE = "perception"
 #: |q_measured − q_cbf| (rad) on any joint above which q_cbf is re-synchronised to the robot.
 RESYNC_TOLERANCE = 0.3
 #: The frame HumanState capsules must be expressed in (the robot frame, z up, floor at 0).
@@ -164,6 +167,7 @@ class SafetyService:
         self._last_q = self.pipeline.filter.q_cbf.copy()  # last published command
         self._human_used: Received[HumanState] | None = None  # the human state the barrier holds
         self._human_stale = False
+        self._human_source_lost = False  # the perception service's liveliness token went away
         self._human_dirty = True  # re-apply the human state (new message, config change)
         self._joint_state_seen: Received[JointState] | None = None
         self._synced = False
@@ -183,6 +187,7 @@ class SafetyService:
             self.bus.subscribe("human/state", self.on_human)
             self.joint_state: Latest[JointState] = self.bus.latest("robot/joint_state")  # type: ignore[assignment]
             self.bus.subscribe("config", self.on_config)
+            self.bus.watch_alive(self.on_alive)
             self.bus.declare_alive(SERVICE_NAME)
         except Exception:
             self.close()
@@ -213,6 +218,15 @@ class SafetyService:
                             message.frame_id, HUMAN_FRAME)
             return
         self.human.set(message)
+
+    def on_alive(self, service: str, alive: bool) -> None:
+        """Liveliness of another service: the human source's token vanishing makes the human stale at once."""
+        if service == HUMAN_SOURCE_SERVICE and self._human_source_lost == alive:
+            self._human_source_lost = not alive
+            if alive:
+                log.info("human source %s is back (liveliness)", service)
+            else:
+                log.warning("human source %s lost (liveliness token gone): human state is stale", service)
 
     def on_config(self, update: ConfigUpdate) -> None:
         """Validate an update; build a new pipeline here if the structure changed; queue it."""
@@ -331,7 +345,7 @@ class SafetyService:
                 self.pipeline.barrier.set_external(None)
                 self._human_dirty = False
             return None
-        stale = now - received.received > self.conf.safety.human_timeout_s
+        stale = self._human_source_lost or now - received.received > self.conf.safety.human_timeout_s
         if received is self._human_used and stale == self._human_stale and not self._human_dirty:
             return received
         message = received.message

@@ -1,0 +1,3 @@
+from services.evaluate.main import cli
+
+cli()

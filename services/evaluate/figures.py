@@ -1,0 +1,110 @@
+"""The paper's Fig. 2b/3b for one evaluation: joint trajectories, and every monitored barrier h.
+
+``joints.png``: the 8 imitation joints over time — the retargeted target q_nom, the command
+without the CBF layer and the command with it; where a CBF row binds the background is shaded.
+``barriers.png``: every monitored h over time in the CBF run (thin lines), self pairs above and
+robot–human pairs below, with the minimum over the pairs of both runs, the zero line, the line
+where the capsules touch (h = −φ) and the global minimum of each run marked.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, no display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from services.evaluate.episode import Episode  # noqa: E402
+
+SAFE_COLOR = "tab:blue"
+UNSAFE_COLOR = "tab:red"
+NOMINAL_COLOR = "0.55"
+BINDING_COLOR = "#fff3b0"
+_DPI = 110
+#: Barrier plots show h up to this (m): far pairs would squash the interesting part.
+_H_TOP = 0.35
+
+
+def _shade_binding(ax, ep: Episode) -> None:
+    """Shade the time spans where some CBF row binds in ``ep``."""
+    binding = ep.binding.astype(np.int8)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], binding, [0]])))
+    dt = ep.t[1] - ep.t[0] if len(ep.t) > 1 else 0.0
+    for start, stop in zip(edges[::2], edges[1::2]):
+        ax.axvspan(ep.t[start], ep.t[stop - 1] + dt, color=BINDING_COLOR, lw=0, zorder=0)
+
+
+def plot_joints(cbf: Episode, nominal: Episode, joint_names: tuple[str, ...], path: Path, title: str) -> Path:
+    """Write ``joints.png``: q_nom, q without and with the CBF layer for each joint (rad)."""
+    fig, axes = plt.subplots(4, 2, figsize=(11, 8.5), sharex=True, constrained_layout=True)
+    for j, (ax, name) in enumerate(zip(axes.T.flat, joint_names)):
+        _shade_binding(ax, cbf)
+        ax.plot(cbf.t, cbf.q_nom[:, j], color=NOMINAL_COLOR, lw=1.0, label="q_nom (retargeted)")
+        ax.plot(nominal.t, nominal.q_cbf[:, j], color=UNSAFE_COLOR, lw=1.3, ls="--", label="without CBF", zorder=3)
+        ax.plot(cbf.t, cbf.q_cbf[:, j], color=SAFE_COLOR, lw=1.5, label="with CBF (q_cbf)")
+        ax.set_title(name.removesuffix("_joint").replace("_", " "), fontsize=9)
+        ax.set_ylabel("rad", fontsize=8)
+        ax.tick_params(labelsize=8)
+        ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    handles.append(plt.Rectangle((0, 0), 1, 1, color=BINDING_COLOR))
+    labels.append("a CBF constraint binds")
+    fig.legend(handles, labels, loc="outside lower center", ncol=4, fontsize=9)
+    fig.suptitle(f"Joint trajectories, nominal vs safe — {title}", fontsize=11)
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return path
+
+
+def _envelope(ep: Episode, columns: np.ndarray) -> np.ndarray:
+    """Per step, the minimum h over ``columns`` (NaN where all are missing)."""
+    values = np.where(np.isnan(ep.h[:, columns]), np.inf, ep.h[:, columns])
+    low = values.min(axis=1, initial=np.inf)
+    return np.where(np.isfinite(low), low, np.nan)
+
+
+def _mark_minimum(ax, ep: Episode, low: np.ndarray, columns: np.ndarray, color: str, run: str) -> None:
+    if np.isnan(low).all():
+        return
+    k = int(np.nanargmin(low))
+    row = np.flatnonzero(columns)[int(np.nanargmin(np.where(np.isnan(ep.h[k, columns]), np.inf, ep.h[k, columns])))]
+    ax.plot(ep.t[k], low[k], "o", color=color, ms=7, mec="black", zorder=5)
+    ax.annotate(
+        f"{run}: min h = {1e3 * low[k]:.1f} mm\nat {ep.t[k]:.2f} s ({ep.pairs.names[row]})",
+        (ep.t[k], low[k]), xytext=(8, -28 if run == "without CBF" else 12), textcoords="offset points",
+        fontsize=8, color=color, arrowprops={"arrowstyle": "-", "color": color, "lw": 0.8},
+    )
+
+
+def plot_barriers(cbf: Episode, nominal: Episode, phi: float, path: Path, title: str) -> Path:
+    """Write ``barriers.png``: every monitored h (m) over time, self and robot–human pairs."""
+    fig, axes = plt.subplots(2, 1, figsize=(11, 7.5), sharex=True, constrained_layout=True)
+    is_self = cbf.pairs.is_self
+    for ax, columns, kind in ((axes[0], is_self, "self pairs"), (axes[1], ~is_self, "robot–human pairs")):
+        _shade_binding(ax, cbf)
+        n_rows = int(np.count_nonzero(columns))
+        for row in np.flatnonzero(columns):
+            ax.plot(cbf.t, cbf.h[:, row], lw=0.6, alpha=0.45)
+        unsafe, safe = _envelope(nominal, columns), _envelope(cbf, columns)
+        ax.plot(nominal.t, unsafe, color=UNSAFE_COLOR, lw=1.6, ls="--", label="min h without CBF")
+        ax.plot(cbf.t, safe, color=SAFE_COLOR, lw=2.0, label="min h with CBF")
+        ax.axhline(0.0, color="black", lw=1.0, label="h = 0 (safety boundary)")
+        ax.axhline(-phi, color="black", lw=0.8, ls=":", label=f"h = −φ (capsules touch, φ = {1e3 * phi:g} mm)")
+        _mark_minimum(ax, nominal, unsafe, columns, UNSAFE_COLOR, "without CBF")
+        _mark_minimum(ax, cbf, safe, columns, SAFE_COLOR, "with CBF")
+        finite = np.concatenate([unsafe[np.isfinite(unsafe)], safe[np.isfinite(safe)], [0.0]])
+        ax.set_ylim(min(finite.min(), -phi) - 0.02, min(max(finite.max(), 0.05), _H_TOP) + 0.02)
+        ax.set_title(f"{kind}: {n_rows} barriers h (thin: each pair with CBF)", fontsize=10)
+        ax.set_ylabel("h (m)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    axes[-1].set_xlabel("time (s)")
+    fig.suptitle(f"Safety margins and their global minimum — {title}", fontsize=11)
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return path

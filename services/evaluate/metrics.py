@@ -1,0 +1,136 @@
+"""``metrics.json``: what the two runs did, as numbers (metres, radians, seconds, milliseconds).
+
+``{"cbf": {...}, "nominal": {...}, "input": {...}}``. Each run has exactly the keys of
+:data:`RUN_KEYS`:
+
+- ``min_h_self`` / ``min_h_human``: the smallest barrier value h (m) over the self pairs / the
+  robot–human pairs, over every control step (null: no such pair was ever evaluated);
+- ``frames_h_negative``: control steps at which some monitored h < 0;
+- ``contacts_robot_robot`` / ``contacts_robot_human``: control steps at which MuJoCo found the
+  robot's own collision geometry touching itself (non-adjacent bodies, not already touching at
+  home) / the person's capsules;
+- ``rms_tracking``: RMS of q_cbf − q_nom over every step and joint (rad);
+- ``rms_tracking_free``: the same over the steps at which no constraint binds in the CBF run (no
+  capsule pair, no joint barrier) — the same steps for both runs, so the two numbers compare
+  like with like;
+- ``max_joint_speed``: the largest commanded joint speed |u*| (rad/s);
+- ``qp_ms_p50`` / ``qp_ms_p99``: QP solve time percentiles (ms, wall clock: the only values
+  that differ between two runs of the same input);
+- ``relaxed_steps`` / ``hold_steps``: steps the filter reported RELAXED (rows infeasible or the
+  state already inside a barrier) / HOLD;
+- ``nan_count``: non-finite values in q_cbf, u* and the simulated joints (must be 0).
+
+Values are rounded (lengths and angles to 1e-6, times to 1e-4 ms) so the file is stable and
+readable; everything but the two QP timings is a pure function of the input and configuration.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.evaluate.episode import MODES, Episode, EvaluationInput, HumanTrack
+from shared.config import StackConfig
+from shared.messages import SafetyMode
+
+RUN_KEYS: tuple[str, ...] = (
+    "min_h_self", "min_h_human", "frames_h_negative", "contacts_robot_robot", "contacts_robot_human",
+    "rms_tracking", "rms_tracking_free", "max_joint_speed", "qp_ms_p50", "qp_ms_p99",
+    "relaxed_steps", "hold_steps", "nan_count",
+)
+#: The wall-clock keys of a run (excluded when two evaluations are compared for determinism).
+TIMING_KEYS: tuple[str, ...] = ("qp_ms_p50", "qp_ms_p99")
+
+
+def _length(value: float) -> float | None:
+    return round(float(value), 6) + 0.0 if np.isfinite(value) else None  # + 0.0: no "-0.0"
+
+
+def _min_h(h: np.ndarray, columns: np.ndarray) -> float | None:
+    values = h[:, columns]
+    return _length(np.nanmin(values)) if columns.any() and not np.isnan(values).all() else None
+
+
+def _rms(error: np.ndarray) -> float:
+    return _length(np.sqrt(np.mean(error**2))) if error.size else 0.0
+
+
+def free_steps(cbf: Episode) -> np.ndarray:
+    """(N,) bool: steps at which no constraint binds in the CBF run."""
+    return ~cbf.binding
+
+
+def run_metrics(ep: Episode, free: np.ndarray) -> dict[str, Any]:
+    """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by ``rms_tracking_free``."""
+    is_self = ep.pairs.is_self
+    error = ep.q_cbf - ep.q_nom
+    negative = np.nan_to_num(ep.h, nan=np.inf) < 0.0
+    modes = np.bincount(ep.mode, minlength=len(MODES))
+    qp = np.percentile(ep.qp_ms, [50, 99])
+    nonfinite = sum(int(np.count_nonzero(~np.isfinite(a))) for a in (ep.q_cbf, ep.u, ep.q_sim))
+    metrics = {
+        "min_h_self": _min_h(ep.h, is_self),
+        "min_h_human": _min_h(ep.h, ~is_self),
+        "frames_h_negative": int(np.count_nonzero(negative.any(axis=1))),
+        "contacts_robot_robot": ep.tally.robot_robot.steps,
+        "contacts_robot_human": ep.tally.robot_human.steps,
+        "rms_tracking": _rms(error),
+        "rms_tracking_free": _rms(error[free]),
+        "max_joint_speed": _length(np.max(np.abs(ep.u))),
+        "qp_ms_p50": round(float(qp[0]), 4),
+        "qp_ms_p99": round(float(qp[1]), 4),
+        "relaxed_steps": int(modes[MODES.index(SafetyMode.RELAXED)]),
+        "hold_steps": int(modes[MODES.index(SafetyMode.HOLD)]),
+        "nan_count": nonfinite,
+    }
+    assert tuple(metrics) == RUN_KEYS
+    return metrics
+
+
+def input_metrics(
+    conf: StackConfig, source: EvaluationInput, human: HumanTrack, cbf: Episode, placement: str
+) -> dict[str, Any]:
+    """What was evaluated: source, duration, robot, the safety parameters, perception counters."""
+    c = human.counters
+    s = conf.safety
+    return {
+        "source": source.name,
+        "placement": placement,
+        "robot_model": Path(conf.robot.model).name if conf.robot.model else "default",
+        "frames": len(source.frames),
+        "fps": round(source.fps, 6),
+        "seconds": round(len(cbf.t) / s.rate_hz, 6),
+        "control_steps": len(cbf.t),
+        "rate_hz": s.rate_hz,
+        "gamma": s.gamma,
+        "phi": s.phi,
+        "gain": s.gain,
+        "human_velocity_term": s.human_velocity_term,
+        "self_pairs": int(np.count_nonzero(cbf.pairs.is_self)),
+        "human_pairs": int(np.count_nonzero(~cbf.pairs.is_self)),
+        "free_steps": int(np.count_nonzero(free_steps(cbf))),
+        "home_contacts_excluded": [f"{a}|{b}" for a, b in cbf.home_contacts],
+        "perception": {
+            "rejected_jumps": c.rejected_jumps,
+            "filter_resets": c.filter_resets,
+            "missing_points": c.missing_points,
+            "invalid_frames": c.invalid_frames,
+        },
+    }
+
+
+def deterministic_part(metrics: dict[str, Any]) -> dict[str, Any]:
+    """``metrics`` without the wall-clock :data:`TIMING_KEYS` of each run."""
+    return {
+        section: {k: v for k, v in values.items() if k not in TIMING_KEYS} if section in ("cbf", "nominal") else values
+        for section, values in metrics.items()
+    }
+
+
+def write_metrics(path: Path, metrics: dict[str, Any]) -> Path:
+    """Write ``metrics`` as indented JSON with a trailing newline (keys in a fixed order)."""
+    path.write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    return path

@@ -1,0 +1,184 @@
+"""The collision-geometry interface of the CBF: colliders fitted to the capsules, rows of every pair.
+
+Every backend (capsules, sphere decomposition, oriented boxes; paper §IV-B, Table I) turns the
+same inputs into the same output:
+
+* in: the 7 robot capsules from forward kinematics, endpoints (7, 2, 3) and their point Jacobians
+  (7, 2, 3, n), and the external (human) capsules of :meth:`CollisionGeometry.set_external`;
+* out: :class:`BarrierRows`, one row per pair of *colliders* of every monitored capsule pair of
+  the :class:`~services.safety.pairs.PairSet`,
+
+      h = d(p_A, p_B) − (ρ_A + ρ_B + φ),   A = ∂h/∂q = nᵀ (J_pA − J_pB),   b = −γ (h − T a) + a,
+
+  with p_A, p_B the witness points (closest points) of the two colliders, n = (p_A − p_B)/‖·‖ the
+  unit normal, ρ the colliders' sphere-swept radii (0 for a box) and a = max(nᵀ v_pB, 0) the
+  approach speed of an external collider (see :mod:`services.safety.barrier`). By the envelope
+  theorem the witness points are held fixed in their bodies when differentiating, so a witness
+  point's Jacobian is that of a body-fixed point. Every backend builds its rows with the same
+  compiled kernel (:func:`services.safety.barrier_kernel.pair_rows`) over a stack of *segments*
+  whose endpoints carry point Jacobians: a capsule's own segment, a sphere's centre or a box's
+  witness point as a zero-length segment.
+
+A row whose external capsule is missing (invalid) stays in the matrix with A = 0, b = −1e9 and
+h = NaN, so the QP keeps a fixed size.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from services.safety.barrier_kernel import pair_distances, pair_rows
+from services.safety.pairs import N_ROBOT, PairSet
+from shared.geometry import EPS_NORMAL, safe_normal, segment_closest_points
+
+#: b of a disabled row (A = 0): 0 ≥ −1e9 always holds.
+DISABLED_B = -1e9
+
+
+@dataclass
+class BarrierRows:
+    """CBF rows for one step: ``A`` (m, n), ``b`` (m,), barrier values ``h`` (m,, NaN if disabled)."""
+
+    A: np.ndarray
+    b: np.ndarray
+    h: np.ndarray
+    distance: np.ndarray
+    enabled: np.ndarray
+    is_self: np.ndarray
+    min_h_all: float = float("inf")  # min h over enabled rows (inf: none)
+
+    def min_h(self, self_rows: bool) -> float | None:
+        """Minimum h over enabled self (or robot–human) rows; None if there is none."""
+        mask = self.enabled & (self.is_self if self_rows else ~self.is_self)
+        return float(self.h[mask].min()) if mask.any() else None
+
+
+def swept_witness_points(segments: np.ndarray, radii: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """(m, 2, 3) closest surface points p_A − r_A n, p_B + r_B n of sphere-swept segment pairs
+    (``first[i]``, ``second[i]``) of ``segments`` (S, 2, 3) with ``radii`` (S,)."""
+    a, b = segments[first], segments[second]
+    closest = segment_closest_points(a[:, 0], a[:, 1], b[:, 0], b[:, 1])
+    normal = safe_normal(closest.p, closest.q, (a[:, 0], a[:, 1], b[:, 0], b[:, 1]))
+    return np.stack([closest.p - radii[first, None] * normal, closest.q + radii[second, None] * normal], axis=1)
+
+
+class CollisionGeometry(ABC):
+    """Colliders fitted to the robot and external capsules; the CBF rows of every monitored pair.
+
+    Holds the capsule stack ``[robot_0 … robot_6, external_0 … external_{E−1}]`` (endpoints,
+    radii, validity, endpoint velocities) that :class:`~services.safety.pairs.PairSet` indexes.
+    A backend declares its rows (:meth:`_set_rows`: which monitored pair each row belongs to;
+    one row per pair by default) and implements :meth:`evaluate` and :meth:`witness_points`.
+    """
+
+    #: The ``safety.geometry`` name of the backend.
+    name: ClassVar[str]
+
+    def __init__(self, pairs: PairSet, robot_radii: np.ndarray, n_joints: int) -> None:
+        self.pairs = pairs
+        self.robot_radii = np.asarray(robot_radii, dtype=np.float64)
+        self.n_joints = n_joints
+        n_stack = N_ROBOT + pairs.n_external
+        self._endpoints = np.zeros((n_stack, 2, 3))
+        self._velocities = np.zeros((n_stack, 2, 3))  # robot rows stay zero (their motion is in J u)
+        self._radii = np.zeros(n_stack)
+        self._valid = np.ones(n_stack, bool)
+        self._radii[:N_ROBOT] = self.robot_radii
+        self._all_enabled = True
+        #: (m,) the monitored pair (index into ``pairs``) of each row; the identity for capsules.
+        self.row_pair = np.arange(len(pairs))
+        self._row_is_self = pairs.is_self
+        self._row_capsule = np.asarray(pairs.second)  # the capsule whose validity enables the row
+
+    def _set_rows(self, row_pair: np.ndarray) -> None:
+        """Declare the backend's rows: ``row_pair`` (m,) monitored pair of each row."""
+        self.row_pair = np.asarray(row_pair, dtype=np.intp)
+        self._row_is_self = self.pairs.is_self[self.row_pair]
+        self._row_capsule = np.asarray(self.pairs.second)[self.row_pair]
+
+    @property
+    def n_rows(self) -> int:
+        """Rows (constraints) per step: fixed for a pair set."""
+        return len(self.row_pair)
+
+    def set_external(
+        self,
+        endpoints: np.ndarray | None,
+        radii: np.ndarray | None = None,
+        valid: np.ndarray | None = None,
+        velocities: np.ndarray | None = None,
+    ) -> None:
+        """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s); None: none present."""
+        ext = slice(N_ROBOT, None)
+        if endpoints is None:
+            self._valid[ext] = False
+        else:
+            self._endpoints[ext] = endpoints
+            self._radii[ext] = radii
+            self._valid[ext] = True if valid is None else valid
+            self._velocities[ext] = 0.0 if velocities is None else velocities
+            self._external_changed()
+        self._all_enabled = bool(self._valid.all())
+
+    def _external_changed(self) -> None:
+        """Hook: the external capsules changed (backends fit their external colliders here)."""
+
+    @abstractmethod
+    def evaluate(
+        self, robot_endpoints: np.ndarray, robot_jacobians: np.ndarray, gamma: float, phi: float, lookahead: float = 0.0
+    ) -> BarrierRows:
+        """Rows at the robot configuration whose FK (``RobotKinematics.compute``, just called) gave
+        ``robot_endpoints`` (7,2,3) and ``robot_jacobians`` (7,2,3,n); ``lookahead`` T (s) of the
+        human velocity term."""
+
+    @abstractmethod
+    def witness_points(self) -> np.ndarray:
+        """(m, 2, 3) the closest points of every row's two colliders at the last evaluation: p_A on
+        the robot's, p_B on the other (the constraint lines of the paper's Fig. 4)."""
+
+    def _segment_rows(
+        self,
+        segments: np.ndarray,
+        radii: np.ndarray,
+        jacobians: np.ndarray,
+        velocities: np.ndarray,
+        first: np.ndarray,
+        second: np.ndarray,
+        n_robot: int,
+        gamma: float,
+        phi: float,
+        lookahead: float,
+    ) -> BarrierRows:
+        """Rows of the sphere-swept segments ``segments`` (S, 2, 3) with ``radii`` (S,): closest
+        points, h and normals (:func:`~services.safety.barrier_kernel.pair_distances`), then
+        A and b (:func:`~services.safety.barrier_kernel.pair_rows`). The first ``n_robot``
+        segments are the robot's, with endpoint Jacobians ``jacobians`` (n_robot, 2, 3, n); the
+        others are external, with endpoint ``velocities`` (S, 2, 3). Row i pairs segment
+        ``first[i]`` (robot) with ``second[i]``. A zero-length segment is a sphere."""
+        m = len(first)
+        distance, h, s, t = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+        normal = np.empty((m, 3))
+        need = pair_distances(segments, radii, first, second, phi, EPS_NORMAL, distance, h, s, t, normal)
+        if need:  # segments touching or crossing: the documented deterministic fallback normal
+            rows = np.flatnonzero(distance < EPS_NORMAL)
+            ea, eb = segments[first[rows]], segments[second[rows]]
+            normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
+        A, b = np.empty((m, self.n_joints)), np.empty(m)
+        pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
+        return self._rows(A, b, h, distance)
+
+    def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray) -> BarrierRows:
+        """Package the rows, disabling those of missing external capsules."""
+        enabled = self._valid[self._row_capsule]
+        if not self._all_enabled:
+            A[~enabled] = 0.0
+            b[~enabled] = DISABLED_B
+            h[~enabled] = np.nan
+            min_h_all = float(h[enabled].min()) if enabled.any() else float("inf")
+        else:
+            min_h_all = float(h.min()) if len(h) else float("inf")
+        return BarrierRows(A=A, b=b, h=h, distance=distance, enabled=enabled, is_self=self._row_is_self, min_h_all=min_h_all)

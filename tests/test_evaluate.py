@@ -1,0 +1,124 @@
+"""The offline evaluator (issue 6, items 2–4): the paper's two scenarios meet their numbers with our
+model and the real G1, the output is deterministic, and any DESIGN §6 recording evaluates (keys in
+any order, extra keys, real motion capture). Real perception, Pinocchio, DAQP and MuJoCo."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.evaluate.main import evaluate, evaluation_config
+from services.evaluate.metrics import RUN_KEYS, TIMING_KEYS, deterministic_part
+from services.perception.placement import Placement
+from services.perception.scenarios import get_scenario, scenario_recording
+from shared.names import KEYPOINT_NAMES
+from tests.conftest import G1_MJCF, MOCAP_DIR, REPO
+
+SCENARIOS = ("cross-arm-reach", "side-by-side-arm-raise")
+
+
+def robot_model(which: str) -> str | None:
+    if which == "ours":
+        return None
+    if not G1_MJCF.is_file():
+        print(f"skipping: real G1 model not found at {G1_MJCF}")
+        pytest.skip(f"real G1 model not found at {G1_MJCF} (set SAFEMIMIC_TEAM_SHARED to the team folder)")
+    return str(G1_MJCF)
+
+
+@pytest.mark.parametrize("model", ["ours", "real_g1"])
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_paper_scenarios_violate_without_and_are_safe_with_the_cbf(scenario: str, model: str) -> None:
+    conf = evaluation_config(None, scenario, "side-by-side", robot_model(model))
+    metrics = evaluate(conf, show_progress=False).metrics()
+    cbf, nominal = metrics["cbf"], metrics["nominal"]
+    assert tuple(cbf) == RUN_KEYS and tuple(nominal) == RUN_KEYS
+    # without the CBF layer the robot violates: a barrier below zero and MuJoCo contacts
+    assert min(nominal["min_h_self"], nominal["min_h_human"]) < 0, nominal
+    assert nominal["contacts_robot_robot"] + nominal["contacts_robot_human"] > 0, nominal
+    assert nominal["frames_h_negative"] > 0
+    # with it: every barrier ≥ −1 mm, not one contact, and nothing lost while no constraint binds
+    assert cbf["min_h_self"] >= -1e-3 and cbf["min_h_human"] >= -1e-3, cbf
+    assert cbf["contacts_robot_robot"] == 0 and cbf["contacts_robot_human"] == 0, cbf
+    assert abs(cbf["rms_tracking_free"] - nominal["rms_tracking_free"]) <= 0.01
+    assert cbf["rms_tracking"] > nominal["rms_tracking"]  # the layer did bend the motion
+    assert cbf["nan_count"] == 0 and nominal["nan_count"] == 0
+    assert cbf["hold_steps"] == 0
+    assert metrics["input"]["free_steps"] < metrics["input"]["control_steps"]
+    assert metrics["input"]["robot_model"] == ("g1.xml" if model == "real_g1" else "default")
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "safemimic.cli", "evaluate", *args],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
+def test_same_input_gives_identical_metrics_and_the_figures(tmp_path: Path) -> None:
+    """Two runs of the CLI: metrics.json equal byte for byte except the two wall-clock QP timings."""
+    texts = []
+    for name in ("a", "b"):
+        done = run_cli("--scenario", "cross-arm-reach", "--seconds", "4", "--out", str(tmp_path / name))
+        assert done.returncode == 0, done.stderr
+        assert "min_h_self" in done.stdout and "evaluate with CBF" in done.stderr  # table and progress
+        texts.append((tmp_path / name / "metrics.json").read_text())
+    first, second = (json.loads(text) for text in texts)
+    assert set(first) == {"cbf", "nominal", "input"}
+    assert deterministic_part(first) == deterministic_part(second)
+
+    def without_timings(text: str) -> str:
+        return "\n".join(line for line in text.splitlines() if not any(f'"{k}"' in line for k in TIMING_KEYS))
+
+    assert without_timings(texts[0]) == without_timings(texts[1])
+    assert all(first[run][k] > 0 for run in ("cbf", "nominal") for k in TIMING_KEYS)
+    assert first["input"]["control_steps"] == 2000 and first["input"]["seconds"] == 4.0
+    for figure in ("joints.png", "barriers.png", "snapshot.png"):
+        data = (tmp_path / "a" / figure).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000, figure
+    contacts = json.loads((tmp_path / "a" / "contacts.json").read_text())
+    assert contacts["nominal"]["robot_robot"]["steps"] == first["nominal"]["contacts_robot_robot"] > 0
+
+
+def test_recording_with_shuffled_keys_and_an_extra_key_evaluates(tmp_path: Path) -> None:
+    """The same scenario as a recording: keypoints in another order plus an unknown key give the
+    very same numbers as the canonical file."""
+    recording = scenario_recording(get_scenario("side-by-side-arm-raise"), 3.0, 30.0, Placement(y=0.7))
+    canonical = tmp_path / "canonical.npz"
+    order = np.random.default_rng(3).permutation(len(KEYPOINT_NAMES))
+    np.savez(canonical, names=np.array(KEYPOINT_NAMES), t=recording.t, xyz=recording.xyz,
+             fps=np.float64(recording.fps), conf=recording.conf)
+    shuffled = tmp_path / "shuffled.npz"
+    np.savez(shuffled, xyz=recording.xyz[:, order], camera_serial=np.array("ZED-12345"), fps=np.float64(recording.fps),
+             conf=recording.conf[:, order], t=recording.t, names=np.array(KEYPOINT_NAMES)[order])
+    results = [
+        deterministic_part(evaluate(evaluation_config(str(path), None, "recorded", None), show_progress=False).metrics())
+        for path in (canonical, shuffled)
+    ]
+    assert results[0]["input"].pop("source") == "replay canonical.npz"
+    assert results[1]["input"].pop("source") == "replay shuffled.npz"
+    assert results[0] == results[1]
+    assert results[0]["input"]["frames"] == 90 and results[0]["cbf"]["nan_count"] == 0
+
+
+def test_real_motion_capture_with_walking_and_turning_evaluates() -> None:
+    clip = MOCAP_DIR / "bandai1_stand_then_dance.npz"
+    if not clip.is_file():
+        print(f"skipping: motion capture clip not found at {clip}")
+        pytest.skip(f"motion capture clip not found at {clip}")
+    conf = evaluation_config(str(clip), None, "facing", None)
+    metrics = evaluate(conf, seconds=4.0, show_progress=False).metrics()
+    assert metrics["input"]["control_steps"] == 2000
+    for run in ("cbf", "nominal"):
+        assert metrics[run]["nan_count"] == 0
+    assert metrics["cbf"]["min_h_self"] >= -1e-3  # self pairs: the robot alone decides, always kept
+
+
+def test_unusable_input_exits_2_with_the_reason(tmp_path: Path) -> None:
+    done = run_cli("--skeleton", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "out"))
+    assert done.returncode == 2 and "missing.npz" in done.stderr
+    done = run_cli("--scenario", "cross-arm-reach", "--seconds", "-1", "--out", str(tmp_path / "out"))
+    assert done.returncode == 2 and "seconds" in done.stderr

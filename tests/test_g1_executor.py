@@ -1,0 +1,249 @@
+"""``safemimic executor --backend g1`` against a stand-in robot, both real processes speaking real
+CycloneDDS on the loopback interface (each test in its own DDS domain). The stand-in
+(``services.executor.g1_fake_robot``) publishes ``rt/lowstate`` and records every ``rt/arm_sdk`` /
+``rt/lowcmd`` frame it receives; this test process plays the safety service over real Zenoh.
+Checked from the robot's side: fields, slots, CRC, the blend ramps, the watchdogs, the rate."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cyclonedds", reason="CycloneDDS's Python package is not installed: pip install 'safemimic[g1]'")
+
+from services.executor.g1_fake_robot import BALANCE_POSE  # noqa: E402
+from services.executor.g1_layout import WEIGHT_SLOT  # noqa: E402
+from shared.bus import Bus  # noqa: E402
+from shared.config import BusConfig  # noqa: E402
+from shared.messages import JointCommand, JointState  # noqa: E402
+from shared.robot_spec import default_robot_spec_path, load_robot_spec  # noqa: E402
+from tests.conftest import free_port  # noqa: E402
+from tests.test_bus import AliveWatcher  # noqa: E402
+
+pytestmark = pytest.mark.integration
+
+SPEC = load_robot_spec(default_robot_spec_path())
+Q_HOME = np.array([SPEC.home.get(j, 0.0) for j in SPEC.imitation_joints])
+TARGET = Q_HOME + np.array([0.1, 0.05, -0.4, 0.2, -0.3, -0.4, -0.2, -0.3])
+SLOTS = [13, 14, 15, 16, 18, 22, 23, 25]
+RAMP_IN_S, RAMP_OUT_S = 0.5, 0.5
+
+
+class Commander:
+    """Publishes JointCommand(q, dq = 0) at 200 Hz from a thread while running."""
+
+    def __init__(self, bus: Bus, q: np.ndarray) -> None:
+        self._publisher = bus.publisher("robot/command")
+        self.q = q
+        self.last_put = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.005):
+            self._publisher.put(JointCommand(stamp=time.monotonic(), q=self.q, dq=np.zeros(8)))
+            self.last_put = time.monotonic()
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._thread.join(2)
+        return self.last_put
+
+
+class States:
+    def __init__(self) -> None:
+        self.latest: JointState | None = None
+        self.count = 0
+
+    def __call__(self, message: JointState) -> None:
+        self.latest = message
+        self.count += 1
+
+
+def domain() -> int:
+    """A DDS domain of its own for this test (CycloneDDS accepts 0–232; the robot uses 0)."""
+    return 1 + (os.getpid() * 7 + int(time.time() * 1000)) % 200
+
+
+def start_robot(spawn, tmp_path: Path, dds_domain: int, mode_machine: int = 5):
+    record = tmp_path / "robot.npz"
+    robot = spawn("-m", "services.executor.g1_fake_robot", "--interface", "lo", "--domain", str(dds_domain),
+                  "--mode-machine", str(mode_machine), "--record", str(record))
+    robot.wait_json("ready", timeout=20)
+    return robot, record
+
+
+def start_executor(spawn, dds_domain: int, *flags: str, **g1: str):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {"SAFEMIMIC__EXECUTOR__G1__DOMAIN_ID": str(dds_domain), "SAFEMIMIC__EXECUTOR__G1__RAMP_IN_S": str(RAMP_IN_S),
+           "SAFEMIMIC__EXECUTOR__G1__RAMP_OUT_S": str(RAMP_OUT_S), "SAFEMIMIC__EXECUTOR__G1__STATE_WAIT_S": "15",
+           **{f"SAFEMIMIC__EXECUTOR__G1__{k.upper()}": v for k, v in g1.items()}}
+    service = spawn("-m", "safemimic.cli", "executor", "--backend", "g1", "--interface", "lo", "--mode", "peer",
+                    "--listen", endpoint, "--no-multicast", *flags, env=env)
+    return service, endpoint
+
+
+def stop(proc, event: str = "stopped") -> dict:
+    proc.popen.terminate()
+    return proc.wait_json(event, timeout=20)
+
+
+def load(record: Path) -> dict[str, np.ndarray]:
+    with np.load(record) as data:
+        return {k: data[k] for k in data.files}
+
+
+def wait_until(predicate, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
+def test_arm_sdk_ramps_follows_and_ramps_out_on_lost_state_and_commands(spawn, tmp_path: Path) -> None:
+    dds = domain()
+    robot, record = start_robot(spawn, tmp_path, dds)
+    service, endpoint = start_executor(spawn, dds)
+    states, watcher = States(), AliveWatcher()
+    with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
+        bus.subscribe("robot/joint_state", states)
+        bus.watch_alive(watcher)
+        watcher.wait("executor", True, timeout=30)
+        wait_until(lambda: states.latest is not None, 10)
+        np.testing.assert_allclose(states.latest.q[2:], BALANCE_POSE[SLOTS[2:]], atol=1e-3)  # the robot's own pose
+
+        commander = Commander(bus, TARGET)
+        wait_until(lambda: np.abs(states.latest.q - TARGET).max() < 0.02, 5)  # ramped in, followed
+        robot.popen.send_signal(signal.SIGUSR1)  # the robot's state stream stops ...
+        time.sleep(1.0)
+        robot.popen.send_signal(signal.SIGUSR1)  # ... and comes back
+        time.sleep(1.5)  # ramps in again
+        last_command = commander.stop()
+        time.sleep(0.5 + 0.3 + RAMP_OUT_S + 0.4)  # service hold, G1 command timeout, ramp-out
+    counters = stop(service)
+    summary = stop(robot)
+    g1 = counters["robot"]
+    assert g1["ramp_ins"] == 2 and g1["ramp_outs"] == {"state timeout": 1, "command timeout": 1}, g1
+    assert g1["faults"] == [] and g1["frames_withheld"] == 0 and counters["tick_errors"] == 0
+    assert summary["bad_crc"] == 0 and summary["lowcmd"] == 0
+
+    r = load(record)
+    assert r["crc_ok"].all() and (r["topic"] == 0).all()
+    assert (r["mode_machine"] == 5).all() and (r["mode_pr"] == 0).all()
+    assert (r["mode"][:, :29] == np.array([0] * 12 + [1] * 17)).all(), "upper body (12–28) only"
+    assert (r["kp"][:, :12] == 0).all() and (r["mode"][:, 29:] == 0).all()
+    np.testing.assert_allclose(r["kp"][:, SLOTS], 60.0)
+    np.testing.assert_allclose(r["kd"][:, SLOTS], 1.5)
+    t, w = r["t"], r["q"][:, WEIGHT_SLOT].astype(float)
+
+    # rate: every frame reached the robot at the service's 500 Hz, far above 250 Hz
+    active = (t > t[0] + 0.5) & (t < t[-1] - 0.5)
+    rate = active.sum() / (t[active][-1] - t[active][0])
+    print(f"rt/arm_sdk frames at the robot: {rate:.0f} Hz, largest gap {1e3 * np.diff(t).max():.1f} ms")
+    assert rate >= 250
+
+    # first ramp-in: from weight 0 and the robot's measured pose (the frames before it carry that
+    # pose), targets moving at most max_speed (6 rad/s on the arms) over ≤ 2 periods per frame
+    start = int(np.argmax(w > 0))
+    assert start > 2 and w[start - 1] == 0.0 and w[start] < 0.05
+    np.testing.assert_allclose(r["q"][start - 2, SLOTS[2:]], BALANCE_POSE[SLOTS[2:]], atol=1e-6)
+    steps = np.abs(np.diff(r["q"][start - 2:start + 300, SLOTS[2:]].astype(float), axis=0))
+    assert steps.max() <= 6.0 * 2 * 0.002 + 1e-5
+    full = start + int(np.argmax(w[start:] >= 1.0))
+    assert (np.diff(w[start:full + 1]) >= -1e-6).all()
+    assert abs((t[full] - t[start]) - RAMP_IN_S) < 0.15, t[full] - t[start]
+    np.testing.assert_allclose(r["q"][full + 200, SLOTS], TARGET, atol=2e-3)
+
+    # state lost: ramp out to 0, then a second ramp-in
+    out = full + int(np.argmax(w[full:] < 1.0))
+    zero = out + int(np.argmax(w[out:] == 0.0))
+    assert (np.diff(w[out:zero + 1]) <= 1e-6).all() and abs((t[zero] - t[out]) - RAMP_OUT_S) < 0.15
+    again = zero + int(np.argmax(w[zero:] > 0))
+    assert again > zero and (w[again:] == 1.0).any()
+
+    # commands stopped: the weight falls to 0 after the timeouts and stays there, final frames at 0
+    timeout_out = again + int(np.argmax((w[again:] < 1.0) & (t[again:] > last_command)))
+    assert 0.3 <= t[timeout_out] - last_command <= 0.5 + 0.3 + 0.2, t[timeout_out] - last_command
+    assert (np.diff(w[timeout_out:]) <= 1e-6).all() and w[-1] == 0.0
+    assert (w[-10:] == 0.0).all()
+
+
+@pytest.mark.parametrize("policy", ["refuse", "arms_only"])
+def test_locked_waist(spawn, tmp_path: Path, policy: str) -> None:
+    dds = domain()
+    robot, record = start_robot(spawn, tmp_path, dds, mode_machine=6)
+    service, endpoint = start_executor(spawn, dds, on_locked_waist=policy)
+    if policy == "refuse":
+        assert service.popen.wait(30) == 2
+        output = "".join(service.output)
+        assert "cannot move ['waist_roll_joint', 'waist_pitch_joint']" in output and "arms_only" in output
+        assert stop(robot)["frames"] == 0, "nothing was sent"
+        return
+    watcher = AliveWatcher()
+    with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
+        bus.watch_alive(watcher)
+        watcher.wait("executor", True, timeout=30)
+        commander = Commander(bus, TARGET)  # waist roll 0.1, pitch 0.05: dropped
+        time.sleep(RAMP_IN_S + 0.7)
+        commander.stop()
+    g1 = stop(service)["robot"]
+    stop(robot)
+    assert g1["dropped_joints"] == ["waist_roll_joint", "waist_pitch_joint"]
+    assert g1["waist_commands_dropped"] > 10 and abs(g1["max_waist_drop_rad"] - 0.1) < 1e-6
+    r = load(record)
+    assert (r["mode"][:, [13, 14]] == 0).all() and (r["kp"][:, [13, 14]] == 0).all(), "the locked waist is never commanded"
+    assert (r["q"][:, WEIGHT_SLOT] == 1.0).any()
+    np.testing.assert_allclose(r["q"][r["q"][:, WEIGHT_SLOT] == 1.0][-1, SLOTS[2:]], TARGET[2:], atol=2e-3)
+
+
+def test_lowcmd_mode_commands_every_motor(spawn, tmp_path: Path) -> None:
+    dds = domain()
+    robot, record = start_robot(spawn, tmp_path, dds)
+    service, endpoint = start_executor(spawn, dds, mode="lowcmd")
+    watcher = AliveWatcher()
+    with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
+        bus.watch_alive(watcher)
+        watcher.wait("executor", True, timeout=30)
+        commander = Commander(bus, TARGET)
+        time.sleep(RAMP_IN_S + 0.7)
+        commander.stop()
+    g1 = stop(service)["robot"]
+    summary = stop(robot)
+    assert g1["topic"] == "rt/lowcmd" and summary["arm_sdk"] == 0 and summary["bad_crc"] == 0
+    r = load(record)
+    assert (r["topic"] == 1).all() and (r["mode"][:, :29] == 1).all() and (r["mode"][:, 29:] == 0).all()
+    assert (r["q"][:, WEIGHT_SLOT] == 0).all() and (r["mode_machine"] == 5).all()
+    kp = r["kp"][:, SLOTS[2]].astype(float)
+    assert kp[0] == 0.0 and kp.max() == 60.0, "stiffness ramps from damping only to full"
+    ramp = kp[int(np.argmax(kp > 0)):int(np.argmax(kp == 60.0)) + 1]
+    assert len(ramp) > 100 and (np.diff(ramp) >= -1e-4).all()
+    np.testing.assert_allclose(r["q"][kp == 60.0][-1, SLOTS], TARGET, atol=2e-3)
+    np.testing.assert_allclose(r["q"][-1, :12], BALANCE_POSE[:12], atol=1e-3)  # legs hold their pose
+
+
+def test_dry_run_sends_nothing_and_prints_checked_frames(spawn, tmp_path: Path) -> None:
+    dds = domain()
+    robot, _ = start_robot(spawn, tmp_path, dds)
+    service, endpoint = start_executor(spawn, dds, "--dry-run", dry_run_print_s="0.2")
+    watcher = AliveWatcher()
+    with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
+        bus.watch_alive(watcher)
+        watcher.wait("executor", True, timeout=30)
+        commander = Commander(bus, TARGET)
+        frame = service.wait_json("g1_frame", timeout=10)
+        time.sleep(RAMP_IN_S + 0.3)
+        commander.stop()
+    counters = stop(service)
+    assert stop(robot)["frames"] == 0, "a dry run publishes nothing"
+    assert counters["robot"]["dry_run"] and counters["robot"]["frames_sent"] == 0
+    assert counters["robot"]["frames_printed"] >= 3
+    assert frame["dry_run"] and frame["topic"] == "rt/arm_sdk" and frame["checked"]
+    assert frame["commanded_slots"] == list(range(12, 29)) and set(frame["imitation"]) == set(SPEC.imitation_joints)
+    assert "DRY RUN" in "".join(service.output)
