@@ -127,8 +127,9 @@ class Watch:
                 self.seen_alive.add(service)
 
     def all_up(self) -> bool:
+        """Every service holds its token and the safety loop runs (a SafetyStatus arrived)."""
         with self.lock:
-            return all(self.alive.get(token) for token in EXPECTED_TOKENS)
+            return self.status is not None and all(self.alive.get(token) for token in EXPECTED_TOKENS)
 
     def take_health_events(self) -> list[tuple[float, str, bool]]:
         with self.lock:

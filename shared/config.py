@@ -55,7 +55,7 @@ class BusConfig(_Section):
     listen: list[str] = Field(default_factory=list)
     multicast_scouting: bool = True
     max_message_bytes: int = Field(default=262144, ge=1024, le=64 * 1024 * 1024)
-    lease_ms: int = Field(default=1000, ge=100, le=60000)
+    lease_ms: int = Field(default=500, ge=100, le=60000)
 
 
 class RobotConfig(_Section):
