@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from enum import Enum
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import (
@@ -123,7 +123,9 @@ class HumanState(Message):
     capsule_radii: Array(N_CAPSULES)
     capsule_valid: Array(N_CAPSULES, dtype=np.bool_)
     capsule_velocities: Array(N_CAPSULES, 2, 3) | None = None
-    frame_id: str = Field(default="robot", max_length=32)
+    frame_id: Literal["robot"] = Field(
+        default="robot", description="always the robot frame: anything else is rejected when decoded"
+    )
     capture_stamp: float | None = Field(default=None, description="when the camera frame was taken")
 
     @field_validator("capsule_radii")

@@ -79,7 +79,7 @@ class Commander:
         return self.last_put
 
 
-def human_in_pelvis(frame_id: str = "robot") -> HumanState:
+def human_in_pelvis() -> HumanState:
     """Only the torso capsule valid, 4 cm long, inside the robot's welded pelvis."""
     capsules = np.zeros((7, 2, 3))
     capsules[TORSO] = [[0.0, -0.02, 0.72], [0.0, 0.02, 0.72]]
@@ -88,7 +88,7 @@ def human_in_pelvis(frame_id: str = "robot") -> HumanState:
     return HumanState(
         stamp=time.monotonic(), keypoints=np.zeros((15, 3)), keypoint_valid=np.zeros(15, bool),
         theta=np.zeros(8), theta_valid=np.zeros(8, bool), capsules=capsules,
-        capsule_radii=np.full(7, 0.03), capsule_valid=valid, frame_id=frame_id,
+        capsule_radii=np.full(7, 0.03), capsule_valid=valid,
     )
 
 
@@ -133,7 +133,9 @@ def test_executor_follows_holds_and_counts_over_zenoh(spawn, which: str) -> None
         bus.put_raw("robot/command", msgpack.packb({"schema": {"name": "JointCommand", "version": 1},
                                                     "stamp": 0.0, "q": [1.0] * 3, "dq": [0.0] * 8}))
         bus.put_raw("human/state", b"\x00" * 64)
-        bus.put_raw("human/state", encode(human_in_pelvis(frame_id="camera")))
+        wrong_frame = human_in_pelvis()
+        wrong_frame.frame_id = "camera"  # type: ignore[assignment]  (encode does not re-validate)
+        bus.put_raw("human/state", encode(wrong_frame))
         # The person's torso capsule inside the welded pelvis: counted as a robot–human contact.
         humans = bus.publisher("human/state")
         for _ in range(5):

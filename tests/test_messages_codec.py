@@ -205,7 +205,7 @@ FACTORIES: dict[type[Message], st.SearchStrategy[Message]] = {
         capsule_radii=f64(7, elements=st.floats(0.0, 1.0)),
         capsule_valid=bools(7),
         capsule_velocities=optional(f64(7, 2, 3)),
-        frame_id=text(32),
+        frame_id=st.just("robot"),
         capture_stamp=optional(FINITE),
     ),
     JointState: st.builds(JointState, **HEADER, q=f64(8), dq=f64(8)),

@@ -18,11 +18,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from services.safety.service import RESYNC_TOLERANCE, SafetyService, enter_realtime, leave_realtime
+from pydantic import ValidationError
+
+from services.safety.service import RESYNC_TOLERANCE, SafetyService
 from shared.bus import Bus
 from shared.config import BusConfig, load_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
 from shared.names import CAPSULE_NAMES, KEYPOINT_NAMES, POSE_ANGLE_NAMES
+from shared.realtime import enter_realtime, leave_realtime
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
 from tests.conftest import Proc, free_port
 
@@ -389,7 +392,7 @@ def test_joint_state_resyncs_q_cbf(service: SafetyService) -> None:
 
 
 def test_stale_human_holds_q_nom_and_capsules(service: SafetyService) -> None:
-    service.on_human(human_state(arm_forward(), person(1.0)[1]))
+    service.human.set(human_state(arm_forward(), person(1.0)[1]))
     received = service.human.get().received
     result = service.tick(received + 0.01)
     q_nom = service._q_nom.copy()
@@ -397,11 +400,9 @@ def test_stale_human_holds_q_nom_and_capsules(service: SafetyService) -> None:
     result = service.tick(received + service.conf.safety.human_timeout_s + 0.1)
     assert service._human_stale and result.rows.min_h(False) is not None
     np.testing.assert_array_equal(service._q_nom, q_nom)
-    # a HumanState in another frame never reaches the barrier
-    other = human_state(np.zeros(8), person(0.2)[1])
-    other.frame_id = "camera"
-    service.on_human(other)
-    assert service.human.get().received == received and service.dropped()["human/state"] == 1
+    # a HumanState in another frame is refused by validation: it can never reach the barrier
+    with pytest.raises(ValidationError, match="frame_id"):
+        HumanState.model_validate({**human_state(np.zeros(8), person(0.2)[1]).model_dump(), "frame_id": "camera"})
 
 
 def test_config_update_swaps_pipeline_and_rate(service: SafetyService) -> None:
@@ -422,7 +423,7 @@ def test_config_update_swaps_pipeline_and_rate(service: SafetyService) -> None:
     service.tick()
     assert service.config_version == 3 and len(service.pipeline.pairs) == 72
     # one person fills 7 of the preset's 14 external slots; the second person's rows stay disabled
-    service.on_human(human_state(np.zeros(8), person(1.0)[1]))
+    service.human.set(human_state(np.zeros(8), person(1.0)[1]))
     result = service.tick()
     assert result.rows.min_h(False) is not None and int(result.rows.enabled.sum()) == N_SELF_PAIRS + 49
     assert service.period == pytest.approx(1 / 250) and service.pipeline.filter.params.gamma == 3.0

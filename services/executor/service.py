@@ -54,7 +54,6 @@ log = logging.getLogger("safemimic.executor")
 
 SERVICE_NAME = "executor"
 #: The frame HumanState capsules must be expressed in (the robot frame, z up, floor at 0).
-HUMAN_FRAME = "robot"
 #: Tick compute times kept for the percentiles (a ring buffer: 20 s at 500 Hz).
 _TICK_TIME_WINDOW = 10_000
 #: Unexpected exceptions in consecutive ticks after which the service gives up (a bug, not noise).
@@ -133,7 +132,7 @@ class ExecutorService:
             self.bus = bus if bus is not None else Bus(conf.bus, conf.robot_id, SERVICE_NAME)
             self._state_pub = self.bus.publisher("robot/joint_state")
             self.bus.subscribe("robot/command", self.command.set)
-            self.bus.subscribe("human/state", self.on_human)
+            self.bus.subscribe("human/state", self.human.set)  # HumanState is validated in the robot frame
             self.bus.declare_alive(SERVICE_NAME)
         except Exception:
             self.executor.stop()
@@ -157,14 +156,6 @@ class ExecutorService:
         return 1.0 / self.conf.executor.rate_hz
 
     # subscriber callback (Zenoh threads) ----------------------------------------------------
-    def on_human(self, message: HumanState) -> None:
-        if message.frame_id != HUMAN_FRAME:  # capsules in an unknown frame must not reach the scene
-            self._rejected["human/state"] += 1
-            if self._rejected["human/state"] == 1:
-                log.warning("dropping HumanStates in frame %r (expected %r)", message.frame_id, HUMAN_FRAME)
-            return
-        self.human.set(message)
-
     # control tick (the loop's thread) -------------------------------------------------------
     def tick(self, now: float) -> None:
         """One control period at monotonic time ``now``: command → human → physics → state."""

@@ -57,7 +57,6 @@ HUMAN_SOURCE_SERVICE = "perception"
 #: |q_measured − q_cbf| (rad) on any joint above which q_cbf is re-synchronised to the robot.
 RESYNC_TOLERANCE = 0.3
 #: The frame HumanState capsules must be expressed in (the robot frame, z up, floor at 0).
-HUMAN_FRAME = "robot"
 #: GIL switch interval of the service process (s): bounds how long the control thread waits for
 #: a Zenoh callback thread holding the GIL (CPython's default is 5 ms, 2.5 periods at 500 Hz).
 SWITCH_INTERVAL_S = 0.0005
@@ -184,7 +183,7 @@ class SafetyService:
         try:
             self._command_pub = self.bus.publisher("robot/command")
             self._status_pub = self.bus.publisher("safety/status")
-            self.bus.subscribe("human/state", self.on_human)
+            self.bus.subscribe("human/state", self.human.set)  # HumanState is validated in the robot frame
             self.joint_state: Latest[JointState] = self.bus.latest("robot/joint_state")  # type: ignore[assignment]
             self.bus.subscribe("config", self.on_config)
             self.bus.watch_alive(self.on_alive)
@@ -210,15 +209,6 @@ class SafetyService:
         return 1.0 / self.conf.safety.rate_hz
 
     # subscriber callbacks (Zenoh threads) ---------------------------------------------------
-    def on_human(self, message: HumanState) -> None:
-        if message.frame_id != HUMAN_FRAME:  # capsules in an unknown frame must not reach the QP
-            self._rejected["human/state"] += 1
-            if self._rejected["human/state"] == 1:  # first time only: perception publishes at 30 Hz
-                log.warning("dropping HumanStates in frame %r (expected %r); counted in status.dropped",
-                            message.frame_id, HUMAN_FRAME)
-            return
-        self.human.set(message)
-
     def on_alive(self, service: str, alive: bool) -> None:
         """Liveliness of another service: the human source's token vanishing makes the human stale at once."""
         if service == HUMAN_SOURCE_SERVICE and self._human_source_lost == alive:
