@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -16,16 +17,26 @@ log = logging.getLogger("safemimic.router")
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
 
-def main(conf: StackConfig, stop: threading.Event) -> None:
-    """Run zenoh's router until ``stop`` is set."""
-    with open_session(conf.bus) as session:
+#: how long closing the session may take when stopping (s); clients still connected can hold it up
+CLOSE_TIMEOUT_S = 3.0
+
+
+def main(conf: StackConfig, stop: threading.Event) -> bool:
+    """Run zenoh's router until ``stop`` is set; True if the session closed within the timeout."""
+    session = open_session(conf.bus)
+    try:
         endpoints = ", ".join(conf.bus.listen) or "zenoh defaults"
         print(f"zenoh router {session.zid()} listening on {endpoints}", flush=True)
         # Wake up now and then: SIGTERM may be delivered to one of zenoh's threads, and Python runs
         # the handler (which sets ``stop``) only when the main thread wakes; an untimed wait can hang.
         while not stop.wait(0.2):
             pass
-    print("zenoh router stopped", flush=True)
+    finally:
+        closer = threading.Thread(target=session.close, daemon=True)
+        closer.start()
+        closer.join(CLOSE_TIMEOUT_S)
+    print("zenoh router stopped" if not closer.is_alive() else "zenoh router stopped (session close timed out)", flush=True)
+    return not closer.is_alive()
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
@@ -46,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    main(conf, stop)
+    if not main(conf, stop):
+        os._exit(0)  # a hung close must not keep a stopped router alive (zenoh's threads are not daemons)
     return 0
 
 
