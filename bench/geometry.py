@@ -49,7 +49,7 @@ from services.safety.pairs import preset_pair_set
 from services.safety.service import external_capsules
 from shared.config import GeometryName, StackConfig, load_config
 from shared.messages import SafetyMode
-from shared.realtime import enter_realtime, leave_realtime
+from shared.realtime import realtime
 from shared.robot_spec import configured_robot_spec
 
 #: The paper's columns in its order: (geometry, sphere subsampling level k or None).
@@ -222,11 +222,8 @@ def run(steps: int = STEPS) -> dict[str, Any]:
     runners = {label(g, k): FilterRunner(make_filter(kinematics, pairs, configured(conf, g, k), backend), q_nom, steps)
                for g, k in GEOMETRIES}
     gc.collect()
-    scheduling = enter_realtime(10)
-    try:
+    with realtime(10) as scheduling:
         interleave(runners, steps)
-    finally:
-        leave_realtime()
 
     rows = []
     for column, (geometry, k) in enumerate(GEOMETRIES):

@@ -51,7 +51,7 @@ from services.safety.pairs import N_ROBOT, PairSet, sized_pair_set
 from shared.config import load_config
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
-from shared.realtime import enter_realtime, leave_realtime
+from shared.realtime import realtime
 
 DT = 0.002
 WARMUP = 500
@@ -534,11 +534,8 @@ def run(steps: int = STEPS) -> dict[str, Any]:
     gc.collect()
     # Timed as the safety service runs its loop (SCHED_FIFO when the OS allows): the worst case
     # then measures our step, not the preemption by other jobs on this shared 2-core machine.
-    scheduling = enter_realtime(10)
-    try:
+    with realtime(10) as scheduling:
         interleave(runners, steps)
-    finally:
-        leave_realtime()
     with warnings.catch_warnings():  # qpsolvers: dense P/G converted to CSC for osqp
         warnings.simplefilter("ignore")
         mink_osqp = MinkRunner(MinkAnchor(kin, pairs, conf, detection=far, min_distance=phi, gain=mink_gain),

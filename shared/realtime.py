@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 log = logging.getLogger(__name__)
 
@@ -35,3 +37,15 @@ def leave_realtime() -> None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except (AttributeError, OSError):
         pass
+
+
+@contextmanager
+def realtime(priority: int) -> Iterator[str]:
+    """``with realtime(p) as scheduling:`` the block runs under :func:`enter_realtime` (its
+    description bound to ``scheduling``) and the thread returns to normal scheduling after."""
+    scheduling = enter_realtime(priority)
+    try:
+        yield scheduling
+    finally:
+        if priority > 0:
+            leave_realtime()

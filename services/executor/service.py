@@ -49,6 +49,7 @@ from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, ExecutorBackend, StackConfig
 from shared.messages import HumanState, JointCommand, JointState
 from shared.robot_spec import RobotSpecError, configured_robot_spec
+from shared.schedule import FixedRateSchedule
 
 log = logging.getLogger("safemimic.executor")
 
@@ -106,8 +107,7 @@ class ExecutorService:
         self.executor = executor or build_executor(conf)
         n = len(self.executor.joint_names)
         self.ticks = 0
-        self.deadline_misses = 0
-        self.max_late_s = 0.0
+        self.schedule = FixedRateSchedule(1.0 / conf.executor.rate_hz)
         self.tick_errors = 0
         self.commands_applied = 0
         self.clipped_commands = 0
@@ -154,6 +154,16 @@ class ExecutorService:
     def period(self) -> float:
         """The control period (s)."""
         return 1.0 / self.conf.executor.rate_hz
+
+    @property
+    def deadline_misses(self) -> int:
+        """Control slots skipped because a tick started a whole period late."""
+        return self.schedule.missed
+
+    @property
+    def max_late_s(self) -> float:
+        """The latest a tick has started (s)."""
+        return self.schedule.max_late_s
 
     # subscriber callback (Zenoh threads) ----------------------------------------------------
     # control tick (the loop's thread) -------------------------------------------------------
@@ -215,26 +225,12 @@ class ExecutorService:
         c = self.conf.executor
         log.info("executor started: %.0f Hz, joint state at %.0f Hz, command timeout %.3f s, robot_id %s, bus %s",
                  c.rate_hz, c.state_rate_hz, c.command_timeout_s, self.conf.robot_id, self.conf.bus.mode.value)
-        period = self.period
-        begin = time.monotonic()
-        end = math.inf if duration is None else begin + duration
+        schedule = self.schedule
+        schedule.start(stop, duration)
+        begin = schedule.begin
         next_stats = begin + c.stats_interval_s
-        k, consecutive_errors = 0, 0
-        while not stop.is_set():
-            due = begin + k * period
-            now = time.monotonic()
-            if now < due:
-                if stop.wait(min(due, end) - now):
-                    break
-                now = time.monotonic()
-            if now >= end:
-                break
-            late = now - due
-            self.max_late_s = max(self.max_late_s, late)
-            if late >= period:  # whole slots passed: count them, keep the phase
-                skipped = int(late // period)
-                self.deadline_misses += skipped
-                k += skipped
+        consecutive_errors = 0
+        while (now := schedule.wait()) is not None:
             try:
                 self.tick(now)
                 consecutive_errors = 0
@@ -245,7 +241,6 @@ class ExecutorService:
                     log.exception("executor tick failed (%d so far)", self.tick_errors)
                 if consecutive_errors >= _MAX_CONSECUTIVE_ERRORS:
                     raise
-            k += 1
             if now >= next_stats:
                 log.info("%s", self.summary_line(now - begin))
                 next_stats += c.stats_interval_s

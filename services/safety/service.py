@@ -44,7 +44,8 @@ import numpy as np
 from services.safety.assembly import SafetyPipeline, build_pipeline, make_retargeter
 from services.safety.filter import FilterParams, StepResult
 from shared.bus import Bus, Latest, Received
-from shared.realtime import enter_realtime, leave_realtime
+from shared.realtime import realtime
+from shared.schedule import FixedRateSchedule
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, StackConfig, validate_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
@@ -154,13 +155,12 @@ class SafetyService:
         warm_up(self.pipeline, self.period)
         # control state
         self.ticks = 0
-        self.deadline_misses = 0
+        self.schedule = FixedRateSchedule(self.period)
         self.resyncs = 0
         self.nonfinite_holds = 0
         self.config_version = 0
         self.tick_errors = 0
         self.modes: Counter[str] = Counter()
-        self.max_late_s = 0.0
         self._step_times = np.zeros(_STEP_TIME_WINDOW)
         self._q_nom = self.pipeline.filter.q_cbf.copy()
         self._last_q = self.pipeline.filter.q_cbf.copy()  # last published command
@@ -207,6 +207,16 @@ class SafetyService:
     def period(self) -> float:
         """The nominal control period Δt (s)."""
         return 1.0 / self.conf.safety.rate_hz
+
+    @property
+    def deadline_misses(self) -> int:
+        """Ticks that started a whole period late or finished after the next one was due."""
+        return self.schedule.missed
+
+    @property
+    def max_late_s(self) -> float:
+        """The latest a tick has started (s)."""
+        return self.schedule.max_late_s
 
     # subscriber callbacks (Zenoh threads) ---------------------------------------------------
     def on_alive(self, service: str, alive: bool) -> None:
@@ -380,14 +390,10 @@ class SafetyService:
         """Tick at ``safety.rate_hz`` until ``stop`` is set (or ``duration`` s passed); final counters.
 
         ``rt_priority`` > 0: run the loop's thread under SCHED_FIFO at that priority if permitted
-        (see :func:`enter_realtime`); the thread returns to normal scheduling afterwards.
+        (see :func:`shared.realtime.enter_realtime`); the thread returns to normal scheduling afterwards.
         """
-        scheduling = enter_realtime(rt_priority)
-        try:
+        with realtime(rt_priority) as scheduling:
             return self._loop(stop, duration, scheduling)
-        finally:
-            if rt_priority > 0:
-                leave_realtime()
 
     def _loop(self, stop: threading.Event, duration: float | None, scheduling: str) -> dict[str, Any]:
         p = self.pipeline
@@ -399,28 +405,11 @@ class SafetyService:
         )
         gc.collect()
         gc.freeze()  # long-lived objects leave the collector: shorter gen-2 pauses in the loop
-        period = self.period
-        begin = anchor = time.monotonic()
-        end = math.inf if duration is None else begin + duration
-        k = 0
+        schedule = self.schedule
+        schedule.start(stop, duration)
         consecutive_errors = 0
         misses_logged, last_miss_log = 0, -math.inf
-        while not stop.is_set():
-            due = anchor + k * period
-            now = time.monotonic()
-            if now < due:
-                if stop.wait(min(due, end) - now):
-                    break
-                now = time.monotonic()
-            if now >= end:
-                break
-            late = now - due
-            self.max_late_s = max(self.max_late_s, late)
-            if late >= period:  # whole slots passed without a command: count them, keep the phase
-                skipped = int(late // period)
-                self.deadline_misses += skipped
-                k += skipped
-                due += skipped * period
+        while (now := schedule.wait()) is not None:
             try:
                 self.tick(now)
                 consecutive_errors = 0
@@ -432,16 +421,13 @@ class SafetyService:
                 if consecutive_errors >= _MAX_CONSECUTIVE_ERRORS:
                     raise
             done = time.monotonic()
-            if done > due + period:
-                self.deadline_misses += 1
-            if self.deadline_misses != misses_logged and done - last_miss_log >= _MISS_LOG_INTERVAL_S:
+            schedule.finished(done)
+            if schedule.missed != misses_logged and done - last_miss_log >= _MISS_LOG_INTERVAL_S:
                 log.warning("%d deadline misses so far (this tick: started %.2f ms late, took %.2f ms)",
-                            self.deadline_misses, (now - due) * 1e3, self._last_step_s * 1e3)
-                misses_logged, last_miss_log = self.deadline_misses, done
-            k += 1
-            if self.period != period:  # a config update changed the rate: restart the schedule
-                period, anchor, k = self.period, time.monotonic(), 1
-        counters = self.counters(time.monotonic() - begin)
+                            schedule.missed, (now - schedule.due) * 1e3, self._last_step_s * 1e3)
+                misses_logged, last_miss_log = schedule.missed, done
+            schedule.set_period(self.period)  # a config update may have changed the rate
+        counters = self.counters(time.monotonic() - schedule.begin)
         log.info("safety service stopped after %d ticks", self.ticks)
         return counters
 
