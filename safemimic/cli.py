@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "executor": ("services.executor.service", "run the robot executor: MuJoCo simulation (or hardware) following JointCommand, publishing JointState"),
     "evaluate": ("services.evaluate.main", "offline evaluation: an input run with and without the CBF layer in MuJoCo → metrics.json + figures"),
     "bench": ("bench.run", "run the benchmarks, print a table and write JSON under bench/results/"),
+    "reliability": ("bench.reliability.run", "run the reliability checks (watchdogs, rate limits, faults, fuzz, load) → bench/results/reliability.json"),
     "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),
     "health": ("safemimic.health", "which services are alive on the bus (liveliness tokens); exit 0 if the named ones are"),
 }
