@@ -81,11 +81,23 @@ def test_idle_frames_carry_zero_weight_and_the_measured_pose() -> None:
     assert float(m["q"][WEIGHT_SLOT]) == 0.0
     assert int(f["crc"]) == lowcmd_crc(f)
     assert int(f["mode_machine"]) == 5 and int(f["mode_pr"]) == 0
+    imitation_only = np.zeros(29, int)
+    imitation_only[SLOTS] = 1
+    # only the 8 imitation joints: every other motor keeps the balance controller's values
+    np.testing.assert_array_equal(m["mode"][:29], imitation_only)
+    others = imitation_only == 0
+    assert (m["mode"][29:] == 0).all() and (m["kp"][:29][others] == 0).all() and (m["kd"][:29][others] == 0).all()
+    np.testing.assert_allclose(m["q"][SLOTS], POSE[SLOTS], atol=1e-6)
+    np.testing.assert_allclose(m["kp"][SLOTS], 60.0)
+    np.testing.assert_allclose(m["kd"][SLOTS], 1.5)
+
+
+def test_upper_body_option_also_holds_the_other_upper_body_motors() -> None:
+    robot = Robot(conf(arm_sdk_joints="upper_body"))
+    m = robot.run(0.05)[-1]["motor_cmd"]
     np.testing.assert_array_equal(m["mode"][:29], [0] * 12 + [1] * 17)  # upper body only, legs untouched
     assert (m["mode"][29:] == 0).all() and (m["kp"][:12] == 0).all()
     np.testing.assert_allclose(m["q"][12:29], POSE[12:29], atol=1e-6)
-    np.testing.assert_allclose(m["kp"][SLOTS], 60.0)
-    np.testing.assert_allclose(m["kd"][SLOTS], 1.5)
     held = [s for s in range(12, 29) if s not in SLOTS]
     np.testing.assert_allclose(m["kp"][held], ARM_SDK_HOLD_GAINS[0])
     np.testing.assert_allclose(m["kd"][held], ARM_SDK_HOLD_GAINS[1])

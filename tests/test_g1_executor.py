@@ -137,8 +137,9 @@ def test_arm_sdk_ramps_follows_and_ramps_out_on_lost_state_and_commands(spawn, t
     r = load(record)
     assert r["crc_ok"].all() and (r["topic"] == 0).all()
     assert (r["mode_machine"] == 5).all() and (r["mode_pr"] == 0).all()
-    assert (r["mode"][:, :29] == np.array([0] * 12 + [1] * 17)).all(), "upper body (12–28) only"
-    assert (r["kp"][:, :12] == 0).all() and (r["mode"][:, 29:] == 0).all()
+    imitation_only = np.isin(np.arange(29), SLOTS)
+    assert (r["mode"][:, :29] == imitation_only).all(), "the 8 imitation joints only"
+    assert (r["kp"][:, :29][:, ~imitation_only] == 0).all() and (r["mode"][:, 29:] == 0).all()
     np.testing.assert_allclose(r["kp"][:, SLOTS], 60.0)
     np.testing.assert_allclose(r["kd"][:, SLOTS], 1.5)
     t, w = r["t"], r["q"][:, WEIGHT_SLOT].astype(float)
@@ -245,5 +246,5 @@ def test_dry_run_sends_nothing_and_prints_checked_frames(spawn, tmp_path: Path) 
     assert counters["robot"]["dry_run"] and counters["robot"]["frames_sent"] == 0
     assert counters["robot"]["frames_printed"] >= 3
     assert frame["dry_run"] and frame["topic"] == "rt/arm_sdk" and frame["checked"]
-    assert frame["commanded_slots"] == list(range(12, 29)) and set(frame["imitation"]) == set(SPEC.imitation_joints)
+    assert frame["commanded_slots"] == SLOTS and set(frame["imitation"]) == set(SPEC.imitation_joints)
     assert "DRY RUN" in "".join(service.output)

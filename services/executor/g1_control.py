@@ -19,9 +19,10 @@ The blend weight ``w`` ∈ [0, 1] moves linearly: 0 → 1 in ``ramp_in_s``, → 
 with its balance controller's. ``rt/lowcmd``: there is no balance controller, so ``w`` scales the
 stiffness (kp·w, kd kept): at 0 every motor only damps.
 
-What is commanded: in ``arm_sdk`` mode the 17 upper-body motors (12–28), as Unitree's example does;
-in ``lowcmd`` mode all 29. Imitated joints follow the targets; every other commanded joint holds
-the pose measured when the ramp-in began. Motors the unit lacks (locked waist, 23-DoF wrists) are
+What is commanded: in ``arm_sdk`` mode the imitation joints only, so every other motor keeps the
+balance controller's values (``arm_sdk_joints: imitation``, the default), or all 17 upper-body motors
+(12–28) as Unitree's example does (``upper_body``); in ``lowcmd`` mode all 29. Imitated joints follow
+the targets; every other commanded joint holds the pose measured when the ramp-in began. Motors the unit lacks (locked waist, 23-DoF wrists) are
 never commanded. While IDLE the frame carries ``w = 0`` and the measured pose, so a ramp-in always
 starts where the robot is.
 
@@ -40,6 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
@@ -57,7 +59,7 @@ from services.executor.g1_layout import (
     joint_slot,
     variant_of,
 )
-from shared.config import G1Config, G1LockedWaistPolicy, G1Mode, G1Waist
+from shared.config import G1ArmSdkJoints, G1Config, G1LockedWaistPolicy, G1Mode, G1Waist
 from shared.robot_spec import RobotSpec
 
 __all__ = ["TORQUE_FAULT_SAMPLES", "G1Controller", "G1StartError", "G1State", "Phase", "check_frame"]
@@ -194,7 +196,12 @@ class G1Controller:
         :class:`G1StartError` when an imitated joint cannot move and ``on_locked_waist`` is refuse."""
         absent, self.unit = _absent_slots(state.mode_machine, self.conf.waist)
         self.mode_machine = state.mode_machine
-        channel = ARM_SDK_SLOTS if self.conf.mode is G1Mode.ARM_SDK else range(NUM_BODY_MOTORS)
+        if self.conf.mode is G1Mode.LOWCMD:
+            channel: Iterable[int] = range(NUM_BODY_MOTORS)
+        elif self.conf.arm_sdk_joints is G1ArmSdkJoints.IMITATION:
+            channel = self.slots.tolist()
+        else:
+            channel = ARM_SDK_SLOTS
         self.commanded[:] = False
         self.commanded[[s for s in channel if s not in absent]] = True
         self.imitated = np.array([s not in absent for s in self.slots])
