@@ -121,6 +121,7 @@ class SafetyConfig(_Section):
         description="an approaching person is anticipated this far ahead (s): one camera frame plus the pipeline latency",
     )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
+    joint_state_timeout_s: float = Field(default=0.1, gt=0, le=60)
     relax_penalty: float = Field(default=1e4, gt=0)
     u_min: NegativeJointVector | None = Field(default=None, description="lower velocity bound per joint (rad/s); null: −u_max")
     enabled_pair_groups: list[PairGroup] = Field(
@@ -162,6 +163,15 @@ class G1Mode(str, Enum):
     LOWCMD = "lowcmd"
 
 
+class G1ArmSdkJoints(str, Enum):
+    """Which upper-body motors an ``rt/arm_sdk`` frame commands: the imitation joints only (the
+    others keep the balance controller's values) or all 17 (the others held at the pose measured
+    when the ramp-in began: for firmware that lets unset upper-body slots go limp)."""
+
+    IMITATION = "imitation"
+    UPPER_BODY = "upper_body"
+
+
 class G1Waist(str, Enum):
     """Whether waist roll/pitch can move: from ``LowState_.mode_machine`` (auto) or as configured."""
 
@@ -182,6 +192,11 @@ class G1Config(_Section):
     joint, in the robot description's order."""
 
     mode: G1Mode = G1Mode.ARM_SDK
+    arm_sdk_joints: G1ArmSdkJoints = Field(
+        default=G1ArmSdkJoints.IMITATION,
+        description="arm_sdk: imitation (send only the imitation joints; the others keep the balance controller's "
+        "values) | upper_body (also hold the other upper-body motors at the pose measured when the ramp began)",
+    )
     network_interface: str | None = Field(
         default=None, pattern=r"^[A-Za-z0-9_.:\-]{1,64}$",
         description="interface facing the robot (e.g. eth0); null: CycloneDDS's choice or $CYCLONEDDS_URI",

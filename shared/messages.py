@@ -137,11 +137,18 @@ class HumanState(Message):
 
 
 class JointState(Message):
-    """Measured state of the 8 imitation joints (IMITATION_JOINT_NAMES order): rad, rad/s."""
+    """Measured state of the 8 imitation joints (IMITATION_JOINT_NAMES order): rad, rad/s.
+
+    ``q_command`` is the position target the executor is holding (the last command, or home before
+    the first one): a restarted safety service continues from it without a jump.
+    ``command_stale`` is True while the executor's newest command is older than its timeout (it holds).
+    """
 
     SCHEMA_NAME: ClassVar[str] = "JointState"
     q: Array(N_JOINTS)
     dq: Array(N_JOINTS)
+    q_command: Array(N_JOINTS) | None = None
+    command_stale: bool = False
 
 
 class SafetyMode(str, Enum):
@@ -177,6 +184,14 @@ class SafetyStatus(Message):
     step_time_ms: float = Field(ge=0)
     deadline_misses: int = Field(default=0, ge=0)
     human_stale: bool = False
+    joint_state_stale: bool = Field(default=False, description="no JointState within safety.joint_state_timeout_s")
+    human_source_lost: bool = Field(default=False, description="perception's liveliness token is gone")
+    executor_holding: bool = Field(default=False, description="the executor reports its commands stale")
+    resyncing: bool = Field(default=False, description="q_cbf is moving (rate-limited) to a displaced robot")
+    watchdog_trips: dict[str, int] = Field(
+        default_factory=dict, description="times each watchdog tripped: human_state, human_source, joint_state, "
+        "executor_command, resync"
+    )
     dropped: dict[str, int] = Field(default_factory=dict, description="invalid messages per topic")
     config_version: int = Field(default=0, ge=0)
     backend: str = Field(default="", max_length=32)

@@ -63,12 +63,12 @@ ARRAY_FIELDS: dict[type[Message], dict[str, tuple[tuple[int, ...], np.dtype]]] =
         "capsule_valid": ((7,), B1),
         "capsule_velocities": ((7, 2, 3), F8),
     },
-    JointState: {"q": ((8,), F8), "dq": ((8,), F8)},
+    JointState: {"q": ((8,), F8), "dq": ((8,), F8), "q_command": ((8,), F8)},
     JointCommand: {"q": ((8,), F8), "dq": ((8,), F8)},
     SafetyStatus: {},
     ConfigUpdate: {},
 }
-OPTIONAL_ARRAYS = {(HumanState, "capsule_velocities")}
+OPTIONAL_ARRAYS = {(HumanState, "capsule_velocities"), (JointState, "q_command")}
 #: Every scalar float field (NaN/Inf must be rejected in each).
 FLOAT_SCALARS: dict[type[Message], tuple[str, ...]] = {
     HumanState: ("stamp", "capture_stamp"),
@@ -208,7 +208,9 @@ FACTORIES: dict[type[Message], st.SearchStrategy[Message]] = {
         frame_id=st.just("robot"),
         capture_stamp=optional(FINITE),
     ),
-    JointState: st.builds(JointState, **HEADER, q=f64(8), dq=f64(8)),
+    JointState: st.builds(
+        JointState, **HEADER, q=f64(8), dq=f64(8), q_command=optional(f64(8)), command_stale=st.booleans()
+    ),
     JointCommand: st.builds(
         JointCommand,
         **HEADER,
@@ -230,6 +232,11 @@ FACTORIES: dict[type[Message], st.SearchStrategy[Message]] = {
         step_time_ms=st.floats(0.0, 1e6),
         deadline_misses=st.integers(0, 2**63),
         human_stale=st.booleans(),
+        joint_state_stale=st.booleans(),
+        human_source_lost=st.booleans(),
+        executor_holding=st.booleans(),
+        resyncing=st.booleans(),
+        watchdog_trips=st.dictionaries(text(32), st.integers(0, 2**63), max_size=5),
         dropped=st.dictionaries(text(32), st.integers(0, 2**63), max_size=6),
         config_version=st.integers(0, 2**32),
         backend=text(32),
@@ -269,6 +276,8 @@ def make(cls: type[Message], **changes: Any) -> Message:
         )
     elif cls in (JointState, JointCommand):
         base |= dict(q=rng.uniform(-1, 1, 8), dq=rng.uniform(-2, 2, 8))
+        if cls is JointState:
+            base |= dict(q_command=rng.uniform(-1, 1, 8), command_stale=True)
         if cls is JointCommand:
             base |= dict(mode=SafetyMode.ACTIVE, human_stamp=1234.4, human_seq=7)
     elif cls is SafetyStatus:
@@ -282,6 +291,11 @@ def make(cls: type[Message], **changes: Any) -> Message:
             step_time_ms=0.3,
             deadline_misses=1,
             human_stale=True,
+            joint_state_stale=True,
+            human_source_lost=True,
+            executor_holding=True,
+            resyncing=True,
+            watchdog_trips={"human_state": 2, "resync": 1},
             dropped={"human/state": 3},
             config_version=4,
             backend="daqp",

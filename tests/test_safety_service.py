@@ -20,7 +20,7 @@ import pytest
 
 from pydantic import ValidationError
 
-from services.safety.service import RESYNC_TOLERANCE, SafetyService
+from services.safety.service import RESYNC_DONE, RESYNC_TOLERANCE, SafetyService
 from shared.bus import Bus
 from shared.config import BusConfig, load_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
@@ -369,37 +369,50 @@ def service() -> Iterator[SafetyService]:
         yield svc
 
 
-def test_joint_state_resyncs_q_cbf(service: SafetyService) -> None:
+def test_first_joint_state_syncs_to_the_executor_target_and_a_displaced_robot_is_rejoined_at_u_max(
+    service: SafetyService,
+) -> None:
     home = service.pipeline.filter.q_cbf.copy()
     measured = home + np.array([0, 0, -0.1, 0.05, 0, 0, 0, 0])
-    service.joint_state.set(JointState(stamp=0.0, q=measured, dq=np.zeros(8)))
+    target = measured + 0.01  # what the executor holds (a predecessor's last command)
+    service.joint_state.set(JointState(stamp=0.0, q=measured, dq=np.zeros(8), q_command=target))
     service.tick()
-    np.testing.assert_allclose(service.pipeline.filter.q_cbf, measured, atol=1e-12)  # first state: reset
+    np.testing.assert_allclose(service.pipeline.filter.q_cbf, target, atol=1e-12)  # continues, no jump
     assert service.resyncs == 0
 
-    service.joint_state.set(JointState(stamp=0.0, q=measured + 0.8 * RESYNC_TOLERANCE, dq=np.zeros(8)))
+    service.joint_state.set(JointState(stamp=0.0, q=target + 0.8 * RESYNC_TOLERANCE, dq=np.zeros(8)))
     service.tick()
-    np.testing.assert_allclose(service.pipeline.filter.q_cbf, measured, atol=1e-12)  # within tolerance
-    pushed = measured.copy()
+    np.testing.assert_allclose(service.pipeline.filter.q_cbf, target, atol=1e-12)  # within tolerance: kept
+    pushed = target.copy()
     pushed[4] += 1.5 * RESYNC_TOLERANCE
-    service.joint_state.set(JointState(stamp=0.0, q=pushed, dq=np.zeros(8)))
-    service.tick()
-    np.testing.assert_allclose(service.pipeline.filter.q_cbf, pushed, atol=1e-12)
-    assert service.resyncs == 1
-    for _ in range(5):  # the same (old) measurement is never applied twice
+    step_limit = np.asarray(service.conf.safety.u_max) * service.period + 1e-12
+    q_prev = service.pipeline.filter.q_cbf.copy()
+    ticks = 0
+    while True:  # the robot stays where it was pushed; q_cbf joins it through the QP at ≤ u_max
+        service.joint_state.set(JointState(stamp=0.0, q=pushed, dq=np.zeros(8)))
         service.tick()
-    assert service.resyncs == 1
+        q = service.pipeline.filter.q_cbf.copy()
+        assert (np.abs(q - q_prev) <= step_limit).all(), ticks
+        q_prev, ticks = q, ticks + 1
+        if service._resync_target is None or ticks > 2000:
+            break
+    assert service.resyncs == 1 and service._resync_target is None, ticks
+    assert np.max(np.abs(q - pushed)) <= RESYNC_DONE and ticks > 10  # not a jump: many steps
+    assert service.counters()["watchdog_trips"] == {"resync": 1}
 
 
-def test_stale_human_holds_q_nom_and_capsules(service: SafetyService) -> None:
+def test_stale_human_keeps_capsules_and_stops_imitating(service: SafetyService) -> None:
     service.human.set(human_state(arm_forward(), person(1.0)[1]))
     received = service.human.get().received
     result = service.tick(received + 0.01)
-    q_nom = service._q_nom.copy()
-    assert q_nom[2] < -1.0 and result.rows.min_h(False) is not None and not service._human_stale
+    assert service._q_nom[2] < -1.0 and result.rows.min_h(False) is not None and not service._human_stale
+    assert np.abs(result.u).max() > 0.1  # imitating: moving towards the raised arm
     result = service.tick(received + service.conf.safety.human_timeout_s + 0.1)
-    assert service._human_stale and result.rows.min_h(False) is not None
-    np.testing.assert_array_equal(service._q_nom, q_nom)
+    assert service._human_stale and result.rows.min_h(False) is not None  # the person is still avoided
+    np.testing.assert_allclose(result.u, 0.0, atol=1e-9)  # q_nom = q_cbf: no longer imitating
+    assert service.watchdog_trips["human_state"] == 1
+    service.tick(received + service.conf.safety.human_timeout_s + 0.2)
+    assert service.watchdog_trips["human_state"] == 1  # counted once per trip
     # a HumanState in another frame is refused by validation: it can never reach the barrier
     with pytest.raises(ValidationError, match="frame_id"):
         HumanState.model_validate({**human_state(np.zeros(8), person(0.2)[1]).model_dump(), "frame_id": "camera"})

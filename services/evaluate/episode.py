@@ -184,12 +184,12 @@ def run_episode(
                 safety.barrier.set_external(
                     *external_capsules(state, safety.pairs.n_external, use_velocity and not now_stale)
                 )
-                if not now_stale:  # stale: the safety service holds q_nom where it was
+                if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     q_nom = safety.retargeter(state.theta, state.theta_valid)
                 if newest != applied:
                     executor.set_human(state.capsules, state.capsule_radii, state.capsule_valid)
                 applied, stale = newest, now_stale
-        result = safety.filter.step(q_nom, dt)
+        result = safety.filter.step(safety.filter.q_cbf.copy() if stale else q_nom, dt)
         executor.apply_command(result.q_cbf, result.u)
         executor.tick()
         report = executor.contacts()

@@ -183,7 +183,8 @@ class ExecutorService:
             self.tally.update(report)
         if now >= self._next_state:
             reading = self.executor.read_state()
-            self._state_pub.put(JointState(stamp=now, q=reading.q, dq=reading.dq))
+            self._state_pub.put(JointState(stamp=now, q=reading.q, dq=reading.dq, q_command=self._target,
+                                           command_stale=self._stale))
             state_period = 1.0 / self.conf.executor.state_rate_hz
             self._next_state = max(self._next_state + state_period, now + 0.5 * state_period)
         self._tick_times[self.ticks % _TICK_TIME_WINDOW] = time.perf_counter() - started

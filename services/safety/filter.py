@@ -4,7 +4,8 @@
     u* = argmin ½ ‖u − u_ref‖²_W  s.t.  A(q_cbf) u ≥ b,  u_lo ≤ u ≤ u_hi
     q_cbf⁺ = q_cbf + Δt u*
 
-with u_lo/u_hi the velocity bounds intersected with the joint limits reachable in one step.
+with u_lo/u_hi the velocity bounds intersected with the joint limits reachable in one step; u* is
+clipped to them whatever the solver returns, so |q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly.
 If the rows are infeasible (or the solver fails) a relaxed problem with one slack shared by
 every row, min … + ½ ρ σ²  s.t.  A u + σ 1 ≥ b, σ ≥ 0, is solved instead: the smallest uniform
 violation (no row is given up for the others) in n + 1 variables however many rows there are.
@@ -150,6 +151,7 @@ class SafetyFilter:
                 active = int(np.count_nonzero(rows.A @ u - rows.b <= 1e-6))
             else:
                 u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
+        u = np.minimum(np.maximum(u, lower), upper)  # an iterative solver's tolerance never exceeds u_max
         q_next = q + dt * u
         if not np.isfinite(q_next).all():
             u, q_next, mode = np.zeros(problem.n), q.copy(), SafetyMode.HOLD

@@ -4,18 +4,31 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
 
 1. apply a pending :class:`~shared.messages.ConfigUpdate` (validated in the subscriber, structural
    changes — robot, pair preset, QP backend — built off the control thread, swapped in here);
-2. the newest :class:`~shared.messages.JointState`: the first one resets q_cbf to the measured q;
-   a later one more than :data:`RESYNC_TOLERANCE` rad away on any joint (robot pushed, restarted)
-   resets it again and is counted;
+2. the newest :class:`~shared.messages.JointState`: the first one sets q_cbf to the target the
+   executor holds (``q_command``; a restarted safety service continues where its predecessor
+   stopped) or else the measured q. A later one more than :data:`RESYNC_TOLERANCE` rad from q_cbf on
+   any joint (robot pushed, executor restarted) starts a *resync*: q_nom becomes the measured q until
+   q_cbf is within :data:`RESYNC_DONE` of it, so q_cbf moves there through the CBF-QP at ≤ u_max,
+   never in a jump;
 3. the newest :class:`~shared.messages.HumanState` (zero-order hold): its capsules become the
    barrier's external capsules and θ is retargeted to q_nom. No human yet: no external capsules,
-   q_nom = q_cbf (hold). A human state older than ``safety.human_timeout_s`` (local receive time)
-   keeps its capsules — the person may still be there — without their velocity term, holds q_nom
-   and marks the status ``human_stale``; so does the disappearance of the perception service's
-   liveliness token (its host crashed or its link was cut: noticed within the Zenoh lease);
+   q_nom = q_cbf (hold).
 4. one CBF-QP step with Δt = the nominal period; the command (q_cbf, u*) is checked finite and
-   published on ``robot/command`` (a non-finite one is replaced by the last command, counted);
+   published on ``robot/command`` (a non-finite one is replaced by the last command, counted).
+   Every command differs from the previous one by at most u_max·Δt per joint;
 5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`.
+
+Watchdogs (each shown in SafetyStatus and counted in ``watchdog_trips`` when it trips):
+
+- ``human_state``: the newest HumanState is older than ``safety.human_timeout_s`` (local receive
+  time) — keep its capsules (the person may still be there) without their velocity term and stop
+  imitating: q_nom = q_cbf (``human_stale``);
+- ``human_source``: the perception service's liveliness token is gone (its host crashed or its link
+  was cut: noticed within the Zenoh lease) — the same as a stale human state (``human_source_lost``);
+- ``joint_state``: no JointState for ``safety.joint_state_timeout_s`` — keep integrating from
+  q_cbf (``joint_state_stale``);
+- ``executor_command``: the executor reports its commands stale and holds (``executor_holding``);
+- ``resync``: a resync started (``resyncing``).
 
 Scheduling is absolute (tick k is due at start + k·Δt) and the thread sleeps on a
 ``threading.Event`` between ticks — never a busy loop, which would hold the GIL and delay the
@@ -55,8 +68,10 @@ log = logging.getLogger("safemimic.safety")
 SERVICE_NAME = "safety"
 #: The liveliness token (``alive/{name}``) of the human source: while it is absent the human is stale.
 HUMAN_SOURCE_SERVICE = "perception"
-#: |q_measured − q_cbf| (rad) on any joint above which q_cbf is re-synchronised to the robot.
+#: |q_measured − q_cbf| (rad) on any joint above which q_cbf is brought back to the robot (a resync).
 RESYNC_TOLERANCE = 0.3
+#: A resync ends when q_cbf is within this (rad, every joint) of the measured q.
+RESYNC_DONE = 0.05
 #: The frame HumanState capsules must be expressed in (the robot frame, z up, floor at 0).
 #: GIL switch interval of the service process (s): bounds how long the control thread waits for
 #: a Zenoh callback thread holding the GIL (CPython's default is 5 ms, 2.5 periods at 500 Hz).
@@ -145,7 +160,7 @@ class SafetyService:
     ``bus`` defaults to a new :class:`~shared.bus.Bus` from ``conf.bus`` (closed by :meth:`close`).
     Inputs: ``human`` and ``joint_state`` (:class:`~shared.bus.Latest` holders fed by the bus) and
     :meth:`on_config` (the ``config`` subscriber). :meth:`tick` runs one control step.
-    The public counters (``ticks``, ``deadline_misses``, ``resyncs``, ``nonfinite_holds``,
+    The public counters (``ticks``, ``deadline_misses``, ``watchdog_trips``, ``nonfinite_holds``,
     ``config_version``) and :meth:`counters` describe what happened so far.
     """
 
@@ -156,7 +171,8 @@ class SafetyService:
         # control state
         self.ticks = 0
         self.schedule = FixedRateSchedule(self.period)
-        self.resyncs = 0
+        self.watchdog_trips: Counter[str] = Counter()
+        self._tripped: set[str] = set()  # watchdogs tripped now
         self.nonfinite_holds = 0
         self.config_version = 0
         self.tick_errors = 0
@@ -170,6 +186,7 @@ class SafetyService:
         self._human_dirty = True  # re-apply the human state (new message, config change)
         self._joint_state_seen: Received[JointState] | None = None
         self._synced = False
+        self._resync_target: np.ndarray | None = None  # measured q that q_nom follows during a resync
         self._last_step_s = 0.0
         self._next_status = -math.inf
 
@@ -218,6 +235,22 @@ class SafetyService:
         """The latest a tick has started (s)."""
         return self.schedule.max_late_s
 
+    @property
+    def resyncs(self) -> int:
+        """Resyncs started so far (the robot was found more than RESYNC_TOLERANCE from q_cbf)."""
+        return self.watchdog_trips["resync"]
+
+    def _watch(self, name: str, tripped: bool, detail: str = "") -> bool:
+        """Record watchdog ``name``'s state; count and log each trip (a change to tripped)."""
+        if tripped and name not in self._tripped:
+            self._tripped.add(name)
+            self.watchdog_trips[name] += 1
+            log.warning("watchdog %s tripped%s (%d so far)", name, f": {detail}" if detail else "", self.watchdog_trips[name])
+        elif not tripped and name in self._tripped:
+            self._tripped.discard(name)
+            log.info("watchdog %s cleared", name)
+        return tripped
+
     # subscriber callbacks (Zenoh threads) ---------------------------------------------------
     def on_alive(self, service: str, alive: bool) -> None:
         """Liveliness of another service: the human source's token vanishing makes the human stale at once."""
@@ -262,10 +295,15 @@ class SafetyService:
         started = time.perf_counter()
         now = time.monotonic() if now is None else now
         self._apply_pending_config()
-        self._sync_joint_state()
+        self._sync_joint_state(now)
         human = self._update_human(now)
         pipeline = self.pipeline
-        q_nom = self._q_nom if human is not None else pipeline.filter.q_cbf.copy()
+        if self._resync_target is not None:
+            q_nom = self._resync_target
+        elif human is not None and not self._human_stale:
+            q_nom = self._q_nom
+        else:  # no person, or not a current one: stop imitating, keep avoiding
+            q_nom = pipeline.filter.q_cbf.copy()
         result = pipeline.filter.step(q_nom, self.period)
 
         q, u, mode = result.q_cbf, result.u, result.mode
@@ -320,22 +358,33 @@ class SafetyService:
         log.info("applied config v%d (rate %.0f Hz, backend %s, pairs %s)", pending.version,
                  new.safety.rate_hz, new.safety.backend.value, new.safety.pairs)
 
-    def _sync_joint_state(self) -> None:
+    def _sync_joint_state(self, now: float) -> None:
+        """The joint-state and executor watchdogs; the first sync of q_cbf; resync start and end."""
         received = self.joint_state.get()
-        if received is None or received is self._joint_state_seen:
+        if received is None:
+            return
+        age = now - received.received
+        self._watch("joint_state", age > self.conf.safety.joint_state_timeout_s, f"newest is {age:.3f} s old")
+        if received is self._joint_state_seen:
             return
         self._joint_state_seen = received
-        q_measured = received.message.q
+        message = received.message
+        self._watch("executor_command", message.command_stale, "the executor holds its last target")
         filt = self.pipeline.filter
         if not self._synced:
-            filt.reset(q_measured)
+            filt.reset(message.q_command if message.q_command is not None else message.q)
             self._synced = True
-            log.info("q_cbf synchronised to the first measured joint state")
-        elif np.max(np.abs(q_measured - filt.q_cbf)) > RESYNC_TOLERANCE:
-            deviation = float(np.max(np.abs(q_measured - filt.q_cbf)))
-            filt.reset(q_measured)
-            self.resyncs += 1
-            log.warning("measured q is %.2f rad from q_cbf: re-synchronised (%d so far)", deviation, self.resyncs)
+            log.info("q_cbf synchronised to the executor's %s", "target" if message.q_command is not None else "measured q")
+            return
+        deviation = float(np.max(np.abs(message.q - filt.q_cbf)))
+        if self._resync_target is None and not self._watch("resync", deviation > RESYNC_TOLERANCE,
+                                                          f"measured q is {deviation:.2f} rad from q_cbf"):
+            return
+        if deviation <= RESYNC_DONE:
+            self._resync_target = None
+            self._watch("resync", False)
+        else:
+            self._resync_target = np.clip(message.q, filt.q_min, filt.q_max)
 
     def _update_human(self, now: float) -> Received[HumanState] | None:
         """Put the newest human state into the barrier and q_nom; None while there never was one."""
@@ -345,16 +394,17 @@ class SafetyService:
                 self.pipeline.barrier.set_external(None)
                 self._human_dirty = False
             return None
-        stale = self._human_source_lost or now - received.received > self.conf.safety.human_timeout_s
+        source_lost = self._watch("human_source", self._human_source_lost, "perception's liveliness token is gone")
+        age = now - received.received
+        timed_out = self._watch("human_state", age > self.conf.safety.human_timeout_s, f"newest is {age:.2f} s old")
+        stale = source_lost or timed_out
         if received is self._human_used and stale == self._human_stale and not self._human_dirty:
             return received
         message = received.message
         use_velocity = self.conf.safety.human_velocity_term and not stale
         self.pipeline.barrier.set_external(*external_capsules(message, self.pipeline.pairs.n_external, use_velocity))
-        if not stale:  # stale: hold q_nom where it was
+        if not stale:  # stale: the tick stops imitating (q_nom = q_cbf)
             self._q_nom = self.pipeline.retargeter(message.theta, message.theta_valid)
-        if stale and not self._human_stale:
-            log.warning("human state is %.2f s old: holding the last capsules and q_nom", now - received.received)
         self._human_used, self._human_stale, self._human_dirty = received, stale, False
         return received
 
@@ -372,6 +422,11 @@ class SafetyService:
                 step_time_ms=self._last_step_s * 1e3,
                 deadline_misses=self.deadline_misses,
                 human_stale=self._human_stale,
+                joint_state_stale=self._joint_state_seen is None or "joint_state" in self._tripped,
+                human_source_lost=self._human_source_lost,
+                executor_holding="executor_command" in self._tripped,
+                resyncing=self._resync_target is not None,
+                watchdog_trips=dict(self.watchdog_trips),
                 dropped=self.dropped(),
                 config_version=self.config_version,
                 backend=self.pipeline.filter.backend_name,
@@ -446,6 +501,7 @@ class SafetyService:
             "step_max_ms": float(steps.max()),
             "max_late_ms": self.max_late_s * 1e3,
             "resyncs": self.resyncs,
+            "watchdog_trips": dict(self.watchdog_trips),
             "nonfinite_holds": self.nonfinite_holds,
             "tick_errors": self.tick_errors,
             "config_version": self.config_version,
