@@ -72,6 +72,13 @@ HUMAN_SOURCE_SERVICE = "perception"
 RESYNC_TOLERANCE = 0.3
 #: A resync ends when q_cbf is within this (rad, every joint) of the measured q.
 RESYNC_DONE = 0.05
+#: The executor whose JointState the loop waits for at start (when its liveliness token is present).
+EXECUTOR_SERVICE = "executor"
+#: At start, how long to wait for a live executor's first JointState (s): a restarted safety service
+#: then continues from the target the executor holds instead of commanding home first.
+EXECUTOR_WAIT_S = 2.0
+#: At start, no executor liveliness token within this (s): start without a joint state.
+EXECUTOR_DISCOVERY_S = 0.5
 #: The frame HumanState capsules must be expressed in (the robot frame, z up, floor at 0).
 #: GIL switch interval of the service process (s): bounds how long the control thread waits for
 #: a Zenoh callback thread holding the GIL (CPython's default is 5 ms, 2.5 periods at 500 Hz).
@@ -183,6 +190,7 @@ class SafetyService:
         self._human_used: Received[HumanState] | None = None  # the human state the barrier holds
         self._human_stale = False
         self._human_source_lost = False  # the perception service's liveliness token went away
+        self._executor_seen = False  # an executor's liveliness token has been seen
         self._human_dirty = True  # re-apply the human state (new message, config change)
         self._joint_state_seen: Received[JointState] | None = None
         self._synced = False
@@ -254,6 +262,8 @@ class SafetyService:
     # subscriber callbacks (Zenoh threads) ---------------------------------------------------
     def on_alive(self, service: str, alive: bool) -> None:
         """Liveliness of another service: the human source's token vanishing makes the human stale at once."""
+        if service == EXECUTOR_SERVICE and alive:
+            self._executor_seen = True
         if service == HUMAN_SOURCE_SERVICE and self._human_source_lost == alive:
             self._human_source_lost = not alive
             if alive:
@@ -447,8 +457,23 @@ class SafetyService:
         ``rt_priority`` > 0: run the loop's thread under SCHED_FIFO at that priority if permitted
         (see :func:`shared.realtime.enter_realtime`); the thread returns to normal scheduling afterwards.
         """
+        self.await_executor(stop)
         with realtime(rt_priority) as scheduling:
             return self._loop(stop, duration, scheduling)
+
+    def await_executor(self, stop: threading.Event, timeout_s: float = EXECUTOR_WAIT_S) -> bool:
+        """Wait for the first JointState (the first tick then syncs q_cbf to the target the executor
+        holds) while an executor may be there: up to ``timeout_s`` once its liveliness token is seen,
+        :data:`EXECUTOR_DISCOVERY_S` if none is; True if one arrived."""
+        started = time.monotonic()
+        while self.joint_state.get() is None:
+            waited = time.monotonic() - started
+            if stop.wait(0.005) or waited > timeout_s:
+                log.warning("the executor is alive but sent no joint state within %.1f s: starting from home", timeout_s)
+                return False
+            if waited > EXECUTOR_DISCOVERY_S and not self._executor_seen:
+                return False
+        return True
 
     def _loop(self, stop: threading.Event, duration: float | None, scheduling: str) -> dict[str, Any]:
         p = self.pipeline
