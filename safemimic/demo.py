@@ -286,7 +286,7 @@ def _watch_stack(args: argparse.Namespace, site: Site, children: list[Child], wa
                 print(f"{time.monotonic() - start:6.1f} {status.mode.value:>9} {_mm(status.min_h_self):>11} "
                       f"{_mm(status.min_h_human):>12} {status.active_constraints:>3}/{status.total_constraints:<3} "
                       f"{status.step_time_ms:8.3f} {commands - last_commands:7d} {lat:>8}  "
-                      f"{watch.health_column()}{'  human stale' if status.human_stale else ''}", flush=True)
+                      f"{watch.health_column()}{_watchdog_column(status)}", flush=True)
             last_commands = commands
         if stop.is_set():
             print("\nstopping (Ctrl-C) ...", flush=True)
@@ -300,6 +300,15 @@ def _exited(children: list[Child]) -> bool:
     for child in exited:
         print(f"\n{child.name} exited with {child.popen.returncode}; its log ends:\n{child.log_tail()}", flush=True)
     return bool(exited)
+
+
+def _watchdog_column(status: SafetyStatus) -> str:
+    """The safety service's tripped watchdogs, e.g. "  human stale, executor holding" ('' when none)."""
+    flags = {"human stale": status.human_stale, "perception lost": status.human_source_lost,
+             "joint state stale": status.joint_state_stale, "executor holding": status.executor_holding,
+             "resyncing": status.resyncing}
+    tripped = [name for name, on in flags.items() if on]
+    return f"  {', '.join(tripped)}" if tripped else ""
 
 
 def _print_health(watch: Watch, start: float | None = None) -> None:
