@@ -19,6 +19,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "router": ("services.router.main", "run a Zenoh router (zenoh's own, router mode) for clients on several hosts"),
     "safety": ("services.safety.service", "run the CBF safety service: HumanState → retarget → CBF-QP → JointCommand at 500 Hz"),
     "perception": ("services.perception.service", "run the perception service: skeleton source → filter → θ + human capsules → HumanState"),
+    "pose-model": ("services.perception.camera.model", "install or check the BlazePose weights of the camera source (from the mediapipe 0.10.21 wheel, SHA-256 pinned)"),
     "record-scenario": ("services.perception.record", "write a scripted synthetic scenario (known angles) as a .npz skeleton recording"),
     "config-api": ("services.config_api.main", "serve the config API and web console: validated, persisted, published parameter changes"),
     "executor": ("services.executor.service", "run the robot executor: MuJoCo simulation (or hardware) following JointCommand, publishing JointState"),

@@ -278,8 +278,8 @@ PLACEMENT_PATTERN = rf"^(?:auto|side-by-side|facing|recorded|{_NUMBER},{_NUMBER}
 class SkeletonSourceName(str, Enum):
     REPLAY = "replay"
     SCENARIO = "scenario"
-    CAMERA = "camera"  # OpenCV + monocular 3D pose: a later issue
-    ZED = "zed"  # ZED SDK body tracking: a later issue
+    CAMERA = "camera"  # OpenCV capture + BlazePose (monocular 3D pose)
+    ZED = "zed"  # ZED SDK body tracking (needs pyzed)
 
 
 class PoseEstimatorName(str, Enum):
@@ -322,6 +322,54 @@ class PoseAnglesConfig(_Section):
         return self
 
 
+Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class CameraIntrinsics(_Section):
+    """Pinhole intrinsics of the captured image (pixels); a null field comes from ``hfov_deg`` and the size.
+
+    K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]; by default fx = fy = (width / 2) / tan(hfov / 2),
+    cx = width / 2, cy = height / 2. ``distortion``: OpenCV coefficients (k1, k2, p1, p2[, k3, ...]);
+    empty: none.
+    """
+
+    fx: float | None = Field(default=None, gt=0)
+    fy: float | None = Field(default=None, gt=0)
+    cx: float | None = Field(default=None, ge=0)
+    cy: float | None = Field(default=None, ge=0)
+    hfov_deg: float = Field(default=60.0, gt=10, lt=170, description="horizontal field of view when fx/fy are null")
+    distortion: list[float] = Field(default_factory=list, max_length=14)
+
+
+class CameraExtrinsics(_Section):
+    """The camera's pose in the robot frame (x forward, y left, z up, floor z = 0).
+
+    The camera body frame is x along the optical axis, y left, z up (ROS ``camera_link``; a level
+    camera with roll = pitch = yaw = 0 looks along the robot's +x). p_robot = position +
+    R_z(yaw) R_y(pitch) R_x(roll) p_body; positive pitch tilts the view down. OpenCV's optical
+    frame (x right, y down, z forward) is p_body = (z, −x, −y).
+    """
+
+    position: Vector3 = Field(default_factory=lambda: [2.5, 0.0, 1.2], description="camera centre in the robot frame (m)")
+    rpy: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 3.141592653589793], description="roll, pitch, yaw (rad)")
+
+
+class CameraConfig(_Section):
+    """Live sources (``camera``: OpenCV + BlazePose; ``zed``: ZED SDK body tracking) and their mounting."""
+
+    device: int | str = Field(default=0, description="camera index, or a video file / stream URL")
+    width: int = Field(default=640, ge=64, le=7680, description="requested from a camera device (px)")
+    height: int = Field(default=480, ge=64, le=4320, description="requested from a camera device (px)")
+    fps: float = Field(default=30.0, gt=0, le=240, description="requested from a camera device")
+    intrinsics: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
+    extrinsics: CameraExtrinsics = Field(default_factory=CameraExtrinsics)
+    model_dir: str | None = Field(default=None, description="BlazePose weights; null: ~/.cache/safemimic/models")
+    detection_threshold: float = Field(default=0.5, gt=0, lt=1, description="person detector score to accept")
+    presence_threshold: float = Field(default=0.5, gt=0, lt=1, description="landmark model pose presence to keep a track")
+    threads: int = Field(default=2, ge=1, le=64, description="inference threads")
+    zed_body_format: Literal["body_18", "body_34"] = "body_34"
+
+
 class PerceptionConfig(_Section):
     """Perception service (DESIGN §1): skeleton source → point filter → θ + human capsules."""
 
@@ -339,6 +387,7 @@ class PerceptionConfig(_Section):
     stats_interval_s: float = Field(default=5.0, gt=0, le=3600)
     point_filter: PointFilterConfig = Field(default_factory=PointFilterConfig)
     angles: PoseAnglesConfig = Field(default_factory=PoseAnglesConfig)
+    camera: CameraConfig = Field(default_factory=CameraConfig)
 
 
 class HumanConfig(_Section):

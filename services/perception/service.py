@@ -124,9 +124,13 @@ class PerceptionService:
             probe.undeclare()
 
     def counters(self) -> dict[str, Any]:
-        return {**asdict(self.pipeline.counters), "published": self.published, "errors": self.errors,
-                "config_version": self.config_version, "rejected_configs": self.rejected_configs,
-                "dropped_by_bus": dict(self.bus.dropped)}
+        counters = {**asdict(self.pipeline.counters), "published": self.published, "errors": self.errors,
+                    "config_version": self.config_version, "rejected_configs": self.rejected_configs,
+                    "dropped_by_bus": dict(self.bus.dropped)}
+        source_counters = getattr(self.source, "counters", None)  # live sources count their own failures
+        if callable(source_counters):
+            counters["source"] = source_counters()
+        return counters
 
     def run(self, stop: threading.Event, duration: float | None = None) -> dict[str, Any]:
         """Stream until the source ends, ``stop`` is set or ``duration`` seconds passed; final counters."""
@@ -178,7 +182,7 @@ def main(conf: StackConfig, stop: threading.Event, duration: float | None = None
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     parser = parser or argparse.ArgumentParser(prog="safemimic perception")
     parser.description = (
-        "Run the perception service: a skeleton source (a .npz replay or a scripted scenario) → point "
+        "Run the perception service: a skeleton source (a .npz replay, a scripted scenario, a camera or a ZED) → point "
         "filter (EMA + jump rejection) → 8 pose angles + 7 human capsules in the robot frame → "
         "HumanState on safemimic/{robot_id}/human/state at the source rate."
     )
@@ -187,6 +191,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     group.add_argument("--source", choices=[name.value for name in SkeletonSourceName], help="skeleton source")
     group.add_argument("--recording", metavar="FILE.npz", help="replay this recording (implies --source replay)")
     group.add_argument("--scenario", metavar="NAME", help="scripted scenario (implies --source scenario)")
+    group.add_argument("--device", metavar="DEVICE", help="camera index or video file (implies --source camera unless --source zed)")
     group.add_argument("--placement", metavar="WHERE", help="auto | side-by-side | facing | recorded | x,y,yaw (m, m, rad)")
     group.add_argument("--estimator", choices=["continuous", "paper"], help="shoulder-angle estimator")
     group.add_argument("--loop", action="store_true", help="start over at the end of the source")
@@ -196,6 +201,13 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     return parser
 
 
+def _device(text: str) -> int | str:
+    """``--device``: a camera index, a stream URL, or a video file (made absolute)."""
+    if text.isdigit():
+        return int(text)
+    return text if "://" in text else str(Path(text).expanduser().resolve())
+
+
 def perception_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """``perception.*`` overrides implied by the flags given."""
     perception: dict[str, Any] = {}
@@ -203,6 +215,8 @@ def perception_overrides(args: argparse.Namespace) -> dict[str, Any]:
         perception.update(source="replay", recording=str(Path(args.recording).expanduser().resolve()))
     if args.scenario:
         perception.update(source="scenario", scenario=args.scenario)
+    if args.device:
+        perception.update(source="camera", camera={"device": _device(args.device)})
     if args.source:
         perception["source"] = args.source
     if args.placement:

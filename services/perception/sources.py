@@ -1,10 +1,11 @@
 """Skeleton sources by configuration: ``replay`` (a .npz recording), ``scenario`` (scripted), ``camera``, ``zed``.
 
 Every source is a :class:`~services.perception.stream.SkeletonSource` yielding robot-frame frames.
-The ``camera`` (OpenCV + monocular 3D pose) and ``zed`` (ZED SDK body tracking) sources are a
-later issue: asking for one raises :class:`SourceUnavailable` with that explanation. A live source
-plugs in here: it yields :class:`~services.perception.stream.SkeletonFrame` objects already in the
-robot frame (camera extrinsics applied), with ``t`` = ``captured`` = its monotonic capture time.
+The live sources, ``camera`` (OpenCV capture + BlazePose monocular 3D pose) and ``zed`` (ZED SDK
+body tracking), live in :mod:`services.perception.camera` and are imported only when configured
+(their runtimes are the ``camera`` extra and the ZED SDK); they yield frames already in the robot
+frame (camera extrinsics applied), with ``t`` = ``captured`` = the monotonic capture time (a video
+file: its own frame times).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from shared.skeleton import RecordingError, read_recording
 
 
 class SourceUnavailable(RuntimeError):
-    """The configured source cannot be opened (missing file, bad recording, not implemented)."""
+    """The configured source cannot be opened (missing file, bad recording, no camera, weights or runtime)."""
 
 
 def open_source(conf: PerceptionConfig, paper_zone: float | None = None) -> SkeletonSource:
@@ -29,11 +30,13 @@ def open_source(conf: PerceptionConfig, paper_zone: float | None = None) -> Skel
         return open_replay(conf)
     if conf.source == SkeletonSourceName.SCENARIO:
         return open_scenario(conf, conf.angles.paper_zone if paper_zone is None else paper_zone)
-    raise SourceUnavailable(
-        f"the {conf.source.value} source is not yet available in this version (a later issue adds the "
-        "OpenCV/MediaPipe camera and the ZED sources); use --source replay --recording FILE.npz or "
-        "--source scenario --scenario NAME"
-    )
+    if conf.source == SkeletonSourceName.CAMERA:
+        from services.perception.camera.source import open_camera
+
+        return open_camera(conf)
+    from services.perception.camera.zed import open_zed
+
+    return open_zed(conf)
 
 
 def open_replay(conf: PerceptionConfig) -> PlayedSource:

@@ -4,7 +4,8 @@ A source yields :class:`SkeletonFrame` objects: 15 canonical keypoints in the ro
 (x forward, y left, z up, metres, floor z = 0, the robot's pelvis above x = y = 0; NaN where a
 point is missing) with confidences, the source time ``t`` (seconds, increasing: the filters'
 clock) and ``captured`` (``time.monotonic()`` when the frame was taken: the message's
-``capture_stamp``). A live source (the camera, a later issue) implements the same protocol.
+``capture_stamp``). The live sources (``camera``, ``zed``: services.perception.camera) implement
+the same protocol.
 """
 
 from __future__ import annotations
