@@ -1,21 +1,27 @@
 """QP backends for the CBF-QP (paper eq. 8), one per file behind :class:`QPBackend`.
 
 Problem: min_u ½ (u − u_ref)ᵀ W (u − u_ref)  s.t.  A u ≥ b,  u_min ≤ u ≤ u_max, with W diagonal.
+A backend's module is imported when first asked for (OSQP brings SciPy: ≈ 0.2 s of a service's start).
 """
 
-from services.safety.qp.base import QPBackend, QPProblem, QPSolution, QPStatus
-from services.safety.qp.daqp_backend import DaqpBackend
-from services.safety.qp.osqp_backend import OsqpBackend
+import importlib
 
-BACKENDS: dict[str, type[QPBackend]] = {"daqp": DaqpBackend, "osqp": OsqpBackend}
+from services.safety.qp.base import QPBackend, QPProblem, QPSolution, QPStatus
+
+#: backend name → (module, class)
+BACKENDS: dict[str, tuple[str, str]] = {
+    "daqp": ("services.safety.qp.daqp_backend", "DaqpBackend"),
+    "osqp": ("services.safety.qp.osqp_backend", "OsqpBackend"),
+}
 
 
 def make_backend(name: str) -> QPBackend:
     """A fresh backend instance by name (``daqp`` or ``osqp``)."""
     try:
-        return BACKENDS[name]()
+        module, cls = BACKENDS[name]
     except KeyError:
         raise ValueError(f"unknown QP backend {name!r}; known: {', '.join(BACKENDS)}") from None
+    return getattr(importlib.import_module(module), cls)()
 
 
 __all__ = ["BACKENDS", "QPBackend", "QPProblem", "QPSolution", "QPStatus", "make_backend"]
