@@ -5,7 +5,10 @@ the G1 and to the person of the side-by-side arm raise, at the moment ``T_SHOW``
 scenario, the robot where the capsule CBF put it (:func:`bench.geometry.track`). The robot is the
 executor's MuJoCo model; robot colliders are drawn translucent blue, the person's orange, and
 every row of the default pair set (the robot's self pairs + robot × person) as a yellow line
-between the closest points of its two colliders. Rendered offscreen (``MUJOCO_GL=egl``).
+between the closest points of its two colliders. A box is drawn as its bounding box (MuJoCo has
+no rounded box): its faces are exact, its edges and corners stand up to (√3 − 1) r/2 outside the
+collider, where a witness point then lies just inside the drawn box. Rendered offscreen
+(``MUJOCO_GL=egl``).
 
     python -m bench.geometry_figure [--out docs/figures/collision_geometries.png]
 """

@@ -12,7 +12,7 @@ from bench.geometry import compare, configured, scenario_human, track
 from services.config_api.models import SafetyParams, SafetyPatch
 from services.safety.assembly import build_pipeline
 from services.safety.barrier import DISABLED_B, CapsuleBarrier
-from services.safety.geometry.boxes import BoxBarrier, capsule_boxes, minimal_rotation
+from services.safety.geometry.boxes import EDGE_ROUNDING, BoxBarrier, capsule_boxes, minimal_rotation, set_rounded
 from services.safety.geometry.spheres import SphereBarrier, intervals
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import N_ROBOT
@@ -144,30 +144,35 @@ def test_sphere_decomposition(kinematics) -> None:
 
 
 def test_box_witness_points_and_distances(kinematics) -> None:
-    """coal's witness points lie on the boxes, ‖p_A − p_B‖ = |d|, and the signed distance of two
-    axis-aligned boxes matches the closed form (separated and overlapping)."""
+    """coal's witness points lie on the rounded boxes (ρ = r/2 from the inner box), ‖p_A − p_B‖ = |d|,
+    and the signed distances of two boxes match the closed forms: across faces (separated and
+    overlapping) as sharp boxes, across edges less the two roundings."""
     p = pipeline(kinematics, "box")
     barrier: BoxBarrier = p.barrier
     rng = np.random.default_rng(11)
     for _ in range(10):
-        barrier.set_external(*random_humans(rng))
+        endpoints, radii = random_humans(rng)
+        barrier.set_external(endpoints, radii)
         rows = p.filter.rows_at(rng.uniform(kinematics.q_min, kinematics.q_max))
         witness = barrier.witness_points()
         np.testing.assert_allclose(np.linalg.norm(witness[:, 0] - witness[:, 1], axis=1), np.abs(rows.distance), atol=1e-6)
+        np.testing.assert_allclose(barrier.rounding, EDGE_ROUNDING * np.concatenate([barrier.robot_radii, radii]))
         for side, boxes in ((0, p.pairs.first), (1, p.pairs.second)):
             local = np.einsum("mji,mj->mi", barrier.rotations[boxes], witness[:, side] - barrier.centres[boxes])
-            slack = barrier.half_extents[boxes] - np.abs(local)
-            assert slack.min() >= -1e-6
-            on_surface = np.isclose(slack.min(axis=1), 0.0, atol=1e-6)
-            assert on_surface[rows.distance > 0].all()
-    # closed form: boxes 1 × 1 × 2 (capsules of radius 0.5, length 1) 1.7 m apart along x, then overlapping 0.3 m
+            rho = barrier.rounding[boxes]
+            beyond = np.linalg.norm(np.maximum(np.abs(local) - (barrier.half_extents[boxes] - rho[:, None]), 0.0), axis=1)
+            assert (beyond <= rho + 1e-6).all()  # inside the rounded box
+            np.testing.assert_allclose(beyond[rows.distance > 0], rho[rows.distance > 0], atol=1e-6)  # on its surface
+    # closed form: boxes 1 × 1 × 2 (capsules of radius 0.5, length 1) rounded by ρ = 0.25
     a, b = np.array([[[0.0, 0, -0.5], [0, 0, 0.5]]]), np.array([[[1.7, 0.2, -0.5], [1.7, 0.2, 0.5]]])
-    for offset, expected in ((0.0, 0.7), (-1.0, -0.3)):
+    face_gap, edge_gap = 0.7, np.sqrt(2) * (1.7 - 2 * 0.25) - 2 * 0.25
+    for offset, expected in (([0.0, 0, 0], face_gap), ([-1.0, 0, 0], -0.3), ([0.0, 1.5, 0], edge_gap)):
         ca, ra, ha = capsule_boxes(a, np.array([0.5]), np.eye(3)[None])
-        cb, rb, hb = capsule_boxes(b + [offset, 0, 0], np.array([0.5]), np.eye(3)[None])
+        cb, rb, hb = capsule_boxes(b + offset, np.array([0.5]), np.eye(3)[None])
         result = coal.DistanceResult()
-        d = coal.distance(coal.Box(2 * ha[0]), coal.Transform3s(ra[0], ca[0]), coal.Box(2 * hb[0]),
-                          coal.Transform3s(rb[0], cb[0]), coal.DistanceRequest(), result)
+        d = coal.distance(set_rounded(coal.Box(1, 1, 1), ha[0], 0.25), coal.Transform3s(ra[0], ca[0]),
+                          set_rounded(coal.Box(1, 1, 1), hb[0], 0.25), coal.Transform3s(rb[0], cb[0]),
+                          coal.DistanceRequest(), result)
         assert d == pytest.approx(expected, abs=1e-6)
 
 
@@ -267,33 +272,27 @@ def scenario_runs(kinematics) -> dict[str, dict[str, dict]]:
     return runs
 
 
-def test_scenarios_keep_own_barriers_or_report_relaxed(scenario_runs) -> None:
-    """Capsules and spheres keep their own h ≥ −1 mm on both scenarios (spheres at k = 0 start
-    5.9 mm inside their barrier at home and leave it during the lead-in). Boxes are honest where
-    they cannot: beside the person their conservative boxes squeeze the arm between the person's
-    box and the robot's own, the QP turns infeasible (RELAXED) while every h is still ≥ 0, and only
-    then does h go below −1 mm; every such step is reported RELAXED."""
-    relaxed = SafetyMode.RELAXED.value
+def test_scenarios_keep_own_barriers(scenario_runs) -> None:
+    """Safety equivalence (issue 10): every geometry keeps its own h ≥ −1 mm on both scenarios,
+    boxes included (their rounded edges leave the robot's forearm room between its own thigh and
+    the person's hand beside it: sharp boxes pinch it there, the QP turns infeasible and the boxes
+    overlap by 15 mm). Spheres at k = 0 start 5.9 mm inside their barrier at home and leave it
+    during the lead-in; every other geometry starts outside."""
     for scenario, tracks in scenario_runs.items():
         summary = compare(tracks)
-        for name in ("capsule", "spheres(k=0)", "spheres(k=1)"):
-            assert summary[name]["keeps_own_h"], (scenario, name, summary[name])
-        assert summary["spheres(k=0)"]["h_own_at_home_mm"] < 0 < summary["spheres(k=1)"]["h_own_at_home_mm"]
-        box = tracks["box"]
-        below = box.h_own < -1e-3
-        assert (box.modes[below] == relaxed).all()
-        if below.any():
-            first_infeasible = int(np.argmax(box.modes == relaxed))
-            assert first_infeasible < int(np.argmax(below)) and box.h_own[first_infeasible] >= 0
-    assert compare(scenario_runs["cross-arm-reach"])["box"]["keeps_own_h"]
+        for name, s in summary.items():
+            assert s["keeps_own_h"] and s["min_h_own_mm"] >= -1.0, (scenario, name, s)
+            assert s["min_h_capsule_mm"] >= s["min_h_own_mm"] - 1e-6, (scenario, name, s)  # the colliders enclose the capsules
+        assert summary["spheres(k=0)"]["h_own_at_home_mm"] < 0
+        assert all(summary[name]["h_own_at_home_mm"] > 0 for name in ("spheres(k=1)", "box", "capsule"))
 
 
 def test_conservative_geometries_stray_further_from_the_imitation(scenario_runs) -> None:
-    """Tracking error: capsules ≤ spheres (k=1) ≤ spheres (k=0) on the cross-arm reach, and every
-    enclosing geometry keeps the capsule clearance along its own motion where it is feasible."""
-    summary = compare(scenario_runs["cross-arm-reach"])
-    rms = {name: s["tracking_rms_rad"] for name, s in summary.items()}
+    """Tracking error on the cross-arm reach: capsules ≤ spheres (k=1) ≤ spheres (k=0), and
+    capsules < boxes; on both scenarios no enclosing geometry tracks better than the capsules."""
+    for scenario, tracks in scenario_runs.items():
+        rms = {name: s["tracking_rms_rad"] for name, s in compare(tracks).items()}
+        assert all(rms["capsule"] <= value + 1e-4 for value in rms.values()), (scenario, rms)
+    rms = {name: s["tracking_rms_rad"] for name, s in compare(scenario_runs["cross-arm-reach"]).items()}
     assert rms["capsule"] <= rms["spheres(k=1)"] + 1e-4 <= rms["spheres(k=0)"] + 2e-4
     assert rms["capsule"] < rms["box"]
-    for name in ("spheres(k=0)", "spheres(k=1)", "box"):
-        assert summary[name]["min_h_capsule_mm"] >= summary[name]["min_h_own_mm"] - 1e-6

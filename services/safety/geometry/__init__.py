@@ -5,7 +5,8 @@
 * ``spheres``: :class:`~services.safety.geometry.spheres.SphereBarrier`, each capsule decomposed
   into enclosing spheres, k levels of subsampling;
 * ``box``: :class:`~services.safety.geometry.boxes.BoxBarrier`, the oriented bounding box of each
-  capsule, signed distance and witness points from coal.
+  capsule with its edges rounded by r/2 (``EDGE_ROUNDING``), signed distance and witness points
+  from coal.
 
 ``services.safety.assembly.make_geometry`` builds the configured one (``safety.geometry``).
 """

@@ -1,9 +1,34 @@
 """Oriented bounding boxes of the capsules (paper §IV-B, Table I: "Boxes"), distances from coal.
 
 The box of a capsule [a, b] with radius r and length L = ‖b − a‖ has its centre at (a + b)/2, its
-long axis along u = (b − a)/L and half extents (r, r, L/2 + r): the tightest box around the
-capsule along its axis (it contains the capsule; its long edges stand (√2 − 1) r off the capsule's
-surface). The box is symmetric under u → −u, so its axis is taken as ±u, the sign towards a
+long axis along u = (b − a)/L and half extents e = (r, r, L/2 + r): the tightest box around the
+capsule along its axis. Its edges and corners are rounded with radius ρ = ``EDGE_ROUNDING`` · r:
+the collider is the inner box of half extents e − ρ swept by a sphere of radius ρ (coal's
+swept-sphere radius),
+
+    B_ρ = Box(e − ρ) ⊕ Ball(ρ),   0 ≤ ρ ≤ r,
+
+whose six faces are the bounding box's faces. It contains the capsule for every ρ ≤ r: with S the
+capsule's segment and C(r − ρ) the cube of half side r − ρ, which contains Ball(r − ρ),
+
+    capsule = S ⊕ Ball(r) = S ⊕ Ball(r − ρ) ⊕ Ball(ρ) ⊆ S ⊕ C(r − ρ) ⊕ Ball(ρ) = B_ρ.
+
+Every excess over the capsule scales with r − ρ: (√2 − 1)(r − ρ) across a long edge,
+(√3 − 1)(r − ρ) at an end corner; ρ = 0 is the sharp box, ρ = r the capsule itself.
+
+Why not sharp boxes (ρ = 0): beside a person (the side-by-side arm raise) the robot's hanging
+forearm sits in a slot between the top corner of its own thigh's box ((√3 − 1) r = 49 mm off
+the thigh capsule) and the person's hand box, which touch *opposite faces* of the forearm's box.
+The two rows then have exactly opposite normals n and −n (a face normal does not change while
+the forearm slides along the face, so no joint velocity increases both distances), and once the hand
+approaches faster than γ (h₁ + h₂) the QP is infeasible while every h > 0: the filter relaxes and the
+boxes come to overlap (h = −35 mm). The rows are exact (they match finite differences); the
+one-step CBF just has no room left. Halving every excess with ρ = r/2 leaves the slot open while
+the faces, and so the boxes' conservatism across them, stay those of the bounding box (measured on
+that scenario: ρ = r/4 still fails with h = −11 mm; 0.4 r, r/2 and 0.6 r keep h ≥ −1 mm, with 70,
+9 and 0 relaxed steps; ``bench/results/geometry.md`` has both scenarios at r/2).
+
+The box is symmetric under u → −u, so its axis is taken as ±u, the sign towards a
 reference axis a (a · u ≥ 0), and its rotation comes from the minimal rotation taking a to ±u,
 
     R(a → u) = I + [v]_× + [v]_×² / (1 + c),   v = a × u,   c = a · u ≥ 0   (never singular).
@@ -14,8 +39,8 @@ R ← R(R e_z → u) R (parallel transport, starting from R(e_z → u)); a fixed
 R(e_z → u) alone would spin the square cross-section about the axis whenever ±u changes sign,
 moving the box under a still person.
 
-Per monitored pair, coal (GJK, EPA when the boxes overlap) gives the signed distance d (< 0: the
-penetration depth), the witness points p_A, p_B and coal's normal n_c (p_B − p_A = d n_c). With
+Per monitored pair, coal (GJK, EPA when the boxes overlap) gives the signed distance d between the
+rounded boxes (< 0: the penetration depth), the witness points p_A, p_B on their surfaces and coal's normal n_c (p_B − p_A = d n_c). With
 n = −n_c (pointing from B towards A, as in every other geometry):
 
     h = d − φ,   ∂h/∂q = nᵀ (J_pA − J_pB),   J_p = J_a − [p − a]_× J_ω,
@@ -40,6 +65,8 @@ from services.safety.pairs import N_ROBOT, PairSet
 
 #: A segment shorter than this (m) has no axis: its box is upright.
 _MIN_LENGTH = 1e-12
+#: ρ / r: the radius of a box's rounded edges and corners, as a fraction of its capsule's radius.
+EDGE_ROUNDING = 0.5
 
 
 def minimal_rotation(a: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -66,6 +93,14 @@ def capsule_boxes(
     return 0.5 * (segments[:, 0] + segments[:, 1]), minimal_rotation(axis, u) @ rotations, half
 
 
+def set_rounded(shape: coal.Box, half: np.ndarray, rounding: float) -> coal.Box:
+    """Make ``shape`` the box of half extents ``half`` (3,) with edges and corners rounded by
+    ``rounding`` ρ: Box(half − ρ) ⊕ Ball(ρ), the same faces. Returns ``shape``."""
+    shape.halfSide = half - rounding
+    shape.setSweptSphereRadius(rounding)
+    return shape
+
+
 def _cross_columns(r: np.ndarray, J: np.ndarray) -> np.ndarray:
     """[r]_× J per row (r × every column of J): ``r`` (m, 3), ``J`` (m, 3, n) → (m, 3, n)."""
     r = r[:, :, None]
@@ -77,7 +112,8 @@ def _cross_columns(r: np.ndarray, J: np.ndarray) -> np.ndarray:
 
 
 class BoxBarrier(CollisionGeometry):
-    """The oriented bounding box of every capsule; one row per monitored pair (coal distances)."""
+    """The oriented bounding box of every capsule, edges rounded (``EDGE_ROUNDING``); one row per
+    monitored pair (coal distances)."""
 
     name = "box"
 
@@ -94,7 +130,12 @@ class BoxBarrier(CollisionGeometry):
         self.rotations = np.tile(np.eye(3), (n_stack, 1, 1))
         self.half_extents = np.ones((n_stack, 3))
         self.half_extents[:N_ROBOT] = robot_half
+        #: (B,) radius ρ of every box's rounded edges: the collider is Box(half_extents − ρ) ⊕ Ball(ρ).
+        self.rounding = np.zeros(n_stack)
+        self.rounding[:N_ROBOT] = EDGE_ROUNDING * self.robot_radii
         self._shapes = [coal.Box(2.0 * half) for half in self.half_extents]
+        for shape, half, rho in zip(self._shapes[:N_ROBOT], robot_half, self.rounding):
+            set_rounded(shape, half, rho)
         self._transforms = [coal.Transform3s() for _ in range(n_stack)]
         self._first = np.asarray(pairs.first, dtype=np.intp)
         self._second = np.asarray(pairs.second, dtype=np.intp)
@@ -129,8 +170,9 @@ class BoxBarrier(CollisionGeometry):
         self.centres[ext], self.rotations[ext], self.half_extents[ext] = capsule_boxes(
             self._endpoints[ext], self._radii[ext], self.rotations[ext]
         )
+        self.rounding[ext] = EDGE_ROUNDING * self._radii[ext]
         for i in range(N_ROBOT, len(self._shapes)):
-            self._shapes[i].halfSide = self.half_extents[i]
+            set_rounded(self._shapes[i], self.half_extents[i], self.rounding[i])
             self._transforms[i].setRotation(self.rotations[i])
             self._transforms[i].setTranslation(self.centres[i])
 
