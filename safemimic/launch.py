@@ -100,3 +100,9 @@ def stop_all(children: Sequence[Child], grace_s: float = 5.0) -> dict[str, int]:
         _signal_group(child, signal.SIGKILL)  # stragglers, and anything the child left in its group
         child.popen.wait()
     return {child.name: child.popen.returncode for child in children}
+
+
+def kill(child: Child) -> None:
+    """SIGKILL ``child``'s process group at once, no grace period, and reap it (``kill -9``: fault injection)."""
+    _signal_group(child, signal.SIGKILL)
+    child.popen.wait()

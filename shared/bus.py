@@ -2,8 +2,9 @@
 
 Key expressions: ``safemimic/{robot_id}/{topic}`` with the topics of :data:`TOPICS`, liveliness
 tokens ``safemimic/{robot_id}/alive/{service}``. A payload that fails to decode or validate is
-dropped and counted per topic; a subscriber callback that raises is counted and logged, never
-propagated into Zenoh. Sessions, publishers and tokens are context managers / closed with the bus.
+dropped and counted per topic, and so is a valid message that is a replay or arrives out of order
+(:class:`SourceOrder`); a subscriber callback that raises is counted and logged, never propagated
+into Zenoh. Sessions, publishers and tokens are context managers / closed with the bus.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import json
 import logging
 import threading
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Generic, TypeVar
@@ -35,6 +36,11 @@ TOPICS: dict[str, type[Message]] = {
     "config": ConfigUpdate,
 }
 KEY_PREFIX = "safemimic"
+#: Silence (s, local receive time) after which a source's next message is taken as a restarted
+#: publisher, whatever its seq and stamp (:class:`SourceOrder`).
+RESTART_SILENCE_S = 1.0
+#: Sources one subscription remembers for ordering; the one heard from least recently is forgotten.
+MAX_ORDERED_SOURCES = 64
 
 
 def topic_key(robot_id: str, topic: str) -> str:
@@ -91,6 +97,60 @@ class TypedPublisher(Generic[M]):
         self._publisher.put(encode(message))
 
 
+@dataclass
+class _Heard:
+    """The last message accepted from one source: its seq and stamp, and when it arrived (monotonic)."""
+
+    seq: int
+    stamp: float
+    received: float
+
+
+class SourceOrder:
+    """Refuses replayed and out-of-order messages, per publishing source (one per subscription).
+
+    Every message carries ``source`` (its publisher, set by :class:`TypedPublisher`), ``seq``
+    (increasing per publisher) and ``stamp`` (the publisher's clock). A message from source s is
+    **refused** when the last message accepted from s had a seq ≥ its seq *and* a stamp ≥ its
+    stamp: a duplicate, a replay, or an older message overtaken by a newer one. Everything else is
+    accepted and becomes s's last message:
+
+    * the first message of a source, and a higher seq (a gap is a lost message, nothing more);
+    * a lower or equal seq with a newer stamp: the publisher restarted (seq from 0 again) on the
+      same clock (a process restart on the same host, whose monotonic clock goes on);
+    * anything that arrives more than ``restart_silence_s`` (local receive time) after the last
+      message accepted from s: a publisher restarted on another clock (another host, a reboot)
+      is accepted again after at most that long, never ignored forever.
+
+    Sources are told apart by name only: two live publishers with one name and interleaved seqs
+    have their older-stamped messages refused. At most ``max_sources`` sources are remembered (the
+    least recently heard is forgotten first), so random source names cannot grow memory.
+    """
+
+    def __init__(self, restart_silence_s: float = RESTART_SILENCE_S, max_sources: int = MAX_ORDERED_SOURCES) -> None:
+        self.restart_silence_s = restart_silence_s
+        self.max_sources = max_sources
+        self._heard: OrderedDict[str, _Heard] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def accept(self, message: Message, received: float) -> bool:
+        """Whether ``message``, received at monotonic time ``received``, is new for its source (then remembered)."""
+        with self._lock:
+            last = self._heard.get(message.source)
+            if (
+                last is not None
+                and message.seq <= last.seq
+                and message.stamp <= last.stamp
+                and received - last.received <= self.restart_silence_s
+            ):
+                return False
+            self._heard[message.source] = _Heard(message.seq, message.stamp, received)
+            self._heard.move_to_end(message.source)
+            if len(self._heard) > self.max_sources:
+                self._heard.popitem(last=False)
+            return True
+
+
 class Latest(Generic[M]):
     """Thread-safe holder of the newest message received on a topic (zero-order hold)."""
 
@@ -114,14 +174,17 @@ class Latest(Generic[M]):
 class Bus:
     """One Zenoh session for one service of one robot, with typed topics and counters.
 
-    ``dropped[topic]`` counts payloads that failed to decode/validate; ``callback_errors[topic]``
-    counts exceptions raised by user callbacks (logged, never propagated).
+    ``dropped[topic]`` counts payloads refused on ``topic``: those that failed to decode/validate
+    and valid messages refused as replayed or out of order (:class:`SourceOrder`), which
+    ``out_of_order[topic]`` counts again on their own; ``callback_errors[topic]`` counts exceptions
+    raised by user callbacks (logged, never propagated).
     """
 
     def __init__(self, bus: BusConfig, robot_id: str, service: str) -> None:
         self.robot_id = robot_id
         self.service = service
         self.dropped: Counter[str] = Counter()
+        self.out_of_order: Counter[str] = Counter()
         self.callback_errors: Counter[str] = Counter()
         self._session = open_session(bus)
         self._entities: list[object] = []
@@ -161,8 +224,10 @@ class Bus:
     def subscribe(
         self, topic: str, callback: Callable[[Message], None], robot_id: str | None = None
     ) -> zenoh.Subscriber:
-        """Call ``callback(message)`` for every valid message on ``topic``; invalid ones are counted."""
+        """Call ``callback(message)`` for every valid message on ``topic`` that is new for its source
+        (:class:`SourceOrder`); invalid, replayed and out-of-order ones are counted in ``dropped``."""
         message_type = _topic_type(topic)
+        order = SourceOrder()
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
@@ -170,6 +235,12 @@ class Bus:
             except CodecError as exc:
                 self.dropped[topic] += 1
                 log.debug("dropped payload on %s: %s", topic, exc)
+                return
+            if not order.accept(message, time.monotonic()):
+                self.dropped[topic] += 1
+                self.out_of_order[topic] += 1
+                log.debug("dropped %s seq %d from %r on %s: replayed or out of order",
+                          message_type.__name__, message.seq, message.source, topic)
                 return
             try:
                 callback(message)
@@ -188,8 +259,9 @@ class Bus:
         return holder
 
     def put_raw(self, topic: str, payload: bytes) -> None:
-        """Publish raw bytes on a topic (fault injection and tests only)."""
-        self._session.put(topic_key(self.robot_id, topic), payload)
+        """Publish raw bytes on a topic (fault injection and tests only); blocks rather than drops
+        when the link is congested, so every payload injected is delivered."""
+        self._session.put(topic_key(self.robot_id, topic), payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     # liveliness ------------------------------------------------------------------------------
     def declare_alive(self, service: str | None = None) -> zenoh.LivelinessToken:

@@ -17,7 +17,12 @@ from bench.common import RESULTS_DIR, machine
 from bench.reliability import CheckResult
 
 #: check group → module with ``run(quick: bool) -> list[CheckResult]``.
-GROUPS: dict[str, str] = {}
+GROUPS: dict[str, str] = {
+    "watchdogs": "bench.reliability.watchdogs",
+    "load": "bench.reliability.load",
+    "faults": "bench.reliability.faults",
+    "fuzz": "bench.reliability.fuzz",
+}
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:

@@ -21,8 +21,6 @@ from shared.messages import ConfigUpdate, HumanState, SafetyStatus
 log = logging.getLogger("safemimic.config_api")
 
 SERVICE_NAME = "config_api"
-#: How often a waiting request looks at the newest SafetyStatus (s).
-_POLL_S = 0.005
 
 
 class BusLink:
@@ -40,6 +38,9 @@ class BusLink:
         self._alive: set[str] = set()
         self.highest_version_seen = 0
         self.status: Latest[SafetyStatus] = Latest()
+        # requests waiting in :meth:`wait_applied`: their event loop and the event a new status sets
+        self._waiters_lock = threading.Lock()
+        self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Event]] = set()
         self._publisher = bus.publisher("config")
         self.human: Latest[HumanState] = bus.latest("human/state")  # type: ignore[assignment]
         bus.subscribe("safety/status", self._on_status)
@@ -49,6 +50,13 @@ class BusLink:
     def _on_status(self, status: SafetyStatus) -> None:
         self.highest_version_seen = max(self.highest_version_seen, status.config_version)
         self.status.set(status)
+        with self._waiters_lock:
+            waiters = list(self._waiters)
+        for loop, event in waiters:
+            try:
+                loop.call_soon_threadsafe(event.set)
+            except RuntimeError:  # that request's event loop has closed (server shutting down)
+                pass
 
     def _on_alive(self, service: str, alive: bool) -> None:
         with self._alive_lock:
@@ -76,10 +84,28 @@ class BusLink:
         return newest is not None and newest.received >= since and newest.message.config_version >= version
 
     async def wait_applied(self, version: int, since: float, timeout_s: float) -> bool:
-        """Wait (without blocking the event loop) until :meth:`applied`, at most ``timeout_s``."""
-        deadline = time.monotonic() + timeout_s
-        while not self.applied(version, since):
-            if time.monotonic() >= deadline:
-                return False
-            await asyncio.sleep(_POLL_S)
-        return True
+        """Wait (without blocking the event loop) until :meth:`applied`, at most ``timeout_s``.
+
+        Woken by each new SafetyStatus (no polling): the answer leaves as soon as the status
+        reporting ``version`` arrives.
+        """
+        loop = asyncio.get_running_loop()
+        waiter = (loop, asyncio.Event())
+        deadline = loop.time() + timeout_s
+        with self._waiters_lock:
+            self._waiters.add(waiter)
+        try:
+            while True:
+                waiter[1].clear()  # before the check: a status arriving after it sets the event again
+                if self.applied(version, since):
+                    return True
+                remaining = deadline - loop.time()
+                if remaining <= 0:
+                    return False
+                try:
+                    await asyncio.wait_for(waiter[1].wait(), remaining)
+                except TimeoutError:
+                    pass
+        finally:
+            with self._waiters_lock:
+                self._waiters.discard(waiter)

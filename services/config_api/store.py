@@ -85,11 +85,20 @@ def config_diff(old: Any, new: Any, prefix: str = "") -> list[Change]:
     return [] if old == new else [Change(path=prefix, old=old, new=new)]
 
 
+#: Suffix of :func:`write_atomic`'s temporary files (named ``.<file name>.<random>.tmp``).
+_TEMP_SUFFIX = ".tmp"
+
+
+def _temp_prefix(path: Path) -> str:
+    return f".{path.name}."
+
+
 def write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temp file in the same folder, fsync, rename, fsync
-    of the folder); the file is created with mode 0600."""
+    of the folder); the file is created with mode 0600. A writer killed midway leaves ``path``
+    as it was and at most a temporary file (see :func:`remove_stale_temporaries`)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_temp_prefix(path), suffix=_TEMP_SUFFIX)
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
@@ -106,6 +115,18 @@ def write_atomic(path: Path, data: bytes) -> None:
         os.close(folder)
 
 
+def stale_temporaries(path: Path) -> list[Path]:
+    """Temporary files of :func:`write_atomic` for ``path`` (left there by a killed writer)."""
+    return sorted(path.parent.glob(f"{_temp_prefix(path)}*{_TEMP_SUFFIX}"))
+
+
+def remove_stale_temporaries(path: Path) -> None:
+    """Delete the temporary files a writer of ``path`` killed inside :func:`write_atomic` left behind
+    (only the single writer of ``path`` may call this, before it writes)."""
+    for tmp in stale_temporaries(path):
+        tmp.unlink(missing_ok=True)
+
+
 class ConfigStore:
     """The versioned configuration in memory and in ``path``; :meth:`commit` is the only writer."""
 
@@ -116,8 +137,14 @@ class ConfigStore:
 
     @classmethod
     def open(cls, path: Path, startup: StackConfig) -> ConfigStore:
-        """Load ``path`` (or start at version 0 from ``startup`` if it does not exist yet)."""
+        """Load ``path`` (or start at version 0 from ``startup`` if it does not exist yet).
+
+        The caller becomes the store's single writer: temporary files a killed predecessor left
+        next to ``path`` are removed first.
+        """
         limit = startup.api.history_length
+        if path.parent.is_dir():
+            remove_stale_temporaries(path)
         if not path.exists():
             return cls(path, Snapshot(0, startup, None, ()), limit)
         try:

@@ -23,7 +23,7 @@ router = APIRouter(prefix="/api/config", tags=["config"])
 
 
 @router.get("", response_model=ConfigResponse, dependencies=[Depends(allow_read)], responses=READ_ERRORS, openapi_extra=READ_OPENAPI)
-def get_config(context: Context) -> ConfigResponse:
+async def get_config(context: Context) -> ConfigResponse:
     """The whole configuration (secrets removed), its version, and the safety and retargeting
     parameters under the names PATCH uses."""
     snapshot = context.store.snapshot
@@ -55,7 +55,7 @@ async def patch_retarget(patch: RetargetPatch, actor: Writer, context: Context) 
 
 
 @router.get("/history", response_model=HistoryResponse, dependencies=[Depends(allow_read)], responses=READ_ERRORS, openapi_extra=READ_OPENAPI)
-def get_history(context: Context, limit: Annotated[int, Query(ge=1, le=10000)] = 20) -> HistoryResponse:
+async def get_history(context: Context, limit: Annotated[int, Query(ge=1, le=10000)] = 20) -> HistoryResponse:
     """The last ``limit`` accepted changes, newest first: version, time, who, client, action, diff."""
     snapshot = context.store.snapshot
     return HistoryResponse(version=snapshot.version, entries=list(reversed(snapshot.history[-limit:])))

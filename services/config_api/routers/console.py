@@ -13,5 +13,5 @@ router = APIRouter(include_in_schema=False)
 
 
 @router.get("/")
-def console() -> FileResponse:
+async def console() -> FileResponse:
     return FileResponse(STATIC_DIR / "index.html", media_type="text/html")

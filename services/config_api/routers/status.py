@@ -28,7 +28,7 @@ def current_status(context: ApiContext) -> StatusResponse:
     "/status", response_model=StatusResponse, dependencies=[Depends(allow_read)], responses=READ_ERRORS,
     openapi_extra=READ_OPENAPI,
 )
-def get_status(context: Context) -> StatusResponse:
+async def get_status(context: Context) -> StatusResponse:
     """The newest SafetyStatus from Zenoh (mode, h_min_self, h_min_human, active constraints, solve
     time, applied config version) and the age of the newest human state."""
     return current_status(context)
@@ -65,7 +65,7 @@ async def _events(request: Request, context: ApiContext) -> AsyncIterator[str]:
     openapi_extra=READ_OPENAPI,
     responses={200: {"content": {"text/event-stream": {}}, "description": "server-sent events: status, config"}, **READ_ERRORS},
 )
-def stream_status(request: Request, context: Context) -> StreamingResponse:
+async def stream_status(request: Request, context: Context) -> StreamingResponse:
     """Live status as server-sent events: ``event: status`` (a StatusResponse as JSON) whenever a new
     SafetyStatus arrived (at most ``api.stream_rate_hz``), ``event: config`` (``{"version": n}``)
     when the configuration changes."""
@@ -79,7 +79,7 @@ def stream_status(request: Request, context: Context) -> StreamingResponse:
     "/health", response_model=HealthResponse, dependencies=[Depends(allow_read)], responses=READ_ERRORS,
     openapi_extra=READ_OPENAPI,
 )
-def health(context: Context) -> HealthResponse:
+async def health(context: Context) -> HealthResponse:
     """Liveness of the API: configuration version, uptime, services seen alive on Zenoh."""
     return HealthResponse(
         config_version=context.store.snapshot.version, uptime_s=time.monotonic() - context.started,

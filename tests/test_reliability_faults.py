@@ -1,0 +1,20 @@
+"""Issue 9 item 3, quick variant: kill -9 each service and the router of a running stack, and the
+config store's writer mid-write (``bench.reliability.faults``; the full run is ``make reliability``)."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.reliability import faults
+
+
+@pytest.mark.integration
+def test_faults_quick() -> None:
+    results = faults.run(quick=True)
+    for result in results:
+        print(result)
+    names = {result.name for result in results}
+    assert {"config_write_kill", "router_restart", "command_limits"} <= names
+    assert {f"kill9_{spec.name}" for spec in faults.SERVICES} <= names
+    failed = [str(result) for result in results if not result.passed]
+    assert not failed, "\n".join(failed)
