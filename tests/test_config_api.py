@@ -120,7 +120,8 @@ class FakeSafety:
                 SafetyStatus(
                     stamp=time.monotonic(), mode=self.mode, min_h_self=self.h_self, min_h_human=self.h_human,
                     active_constraints=3, total_constraints=63, qp_solve_time_ms=0.012 + 0.001 * (self.published % 5),
-                    step_time_ms=0.2, config_version=self.version, backend="daqp",
+                    step_time_ms=0.2, config_version=self.version, backend="daqp", executor_holding=True,
+                    watchdog_trips={"executor_command": 2},
                 )
             )
             self.published += 1
@@ -465,6 +466,9 @@ def test_status_reports_the_newest_safety_status(api: ApiServer, bus: Bus) -> No
     assert 0.0 <= status["status_age_s"] < 1.0 and status["solve_time_ms"] >= 0.012
     assert status["applied_config_version"] == fake.version
     assert status["config_version"] == api.http.get("/api/config").json()["version"]
+    assert status["watchdogs"] == {"human_stale": False, "human_source_lost": False, "joint_state_stale": False,
+                                   "executor_holding": True, "resyncing": False}
+    assert status["watchdog_trips"] == {"executor_command": 2}
 
 
 def test_status_stream_sends_config_and_status_events(api: ApiServer, bus: Bus) -> None:

@@ -294,6 +294,11 @@ class StatusResponse(_View):
     step_time_ms: float | None
     deadline_misses: int | None
     human_stale: bool | None
+    watchdogs: dict[str, bool] = Field(
+        description="the safety service's watchdogs now: human_stale, human_source_lost, joint_state_stale, "
+        "executor_holding, resyncing (empty until a SafetyStatus arrives)"
+    )
+    watchdog_trips: dict[str, int] = Field(description="times each watchdog tripped since the safety service started")
     human_age_s: float | None = Field(description="since the newest HumanState arrived here (s); null: none seen")
     applied_config_version: int | None = Field(description="config_version the safety service reports applied")
     config_version: int = Field(description="the API's current configuration version")
@@ -308,7 +313,8 @@ class StatusResponse(_View):
             return cls(
                 available=False, status_age_s=None, mode=None, h_min_self=None, h_min_human=None,
                 active_constraints=None, total_constraints=None, solve_time_ms=None, step_time_ms=None,
-                deadline_misses=None, human_stale=None, human_age_s=human_age, applied_config_version=None,
+                deadline_misses=None, human_stale=None, watchdogs={}, watchdog_trips={}, human_age_s=human_age,
+                applied_config_version=None,
                 config_version=config_version, backend=None, dropped={},
             )
         s = status.message
@@ -317,6 +323,10 @@ class StatusResponse(_View):
             h_min_human=s.min_h_human, active_constraints=s.active_constraints, total_constraints=s.total_constraints,
             solve_time_ms=s.qp_solve_time_ms, step_time_ms=s.step_time_ms, deadline_misses=s.deadline_misses,
             human_stale=s.human_stale, human_age_s=human_age, applied_config_version=s.config_version,
+            watchdogs={"human_stale": s.human_stale, "human_source_lost": s.human_source_lost,
+                       "joint_state_stale": s.joint_state_stale, "executor_holding": s.executor_holding,
+                       "resyncing": s.resyncing},
+            watchdog_trips=s.watchdog_trips,
             config_version=config_version, backend=s.backend, dropped=s.dropped,
         )
 

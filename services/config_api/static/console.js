@@ -222,6 +222,9 @@ function onStatus(status) {
   $("human-age").textContent = fmt(status.human_age_s, 2);
   $("misses").textContent = status.deadline_misses ?? "–";
   $("backend").textContent = status.backend || "–";
+  // tripped watchdogs now, e.g. "human_stale, executor_holding"; "ok" when none
+  const tripped = Object.entries(status.watchdogs || {}).filter(([, on]) => on).map(([name]) => name);
+  $("watchdogs").textContent = status.available ? (tripped.join(", ") || "ok") : "–";
   $("applied-version").textContent = status.applied_config_version === null ? "–" : "v" + status.applied_config_version;
   if (!status.available) return;
   samples.push({ t: performance.now() / 1000, hSelf: status.h_min_self, hHuman: status.h_min_human, solve: status.solve_time_ms, mode: status.mode });
