@@ -305,6 +305,7 @@ def _exited(children: list[Child]) -> bool:
 def _watchdog_column(status: SafetyStatus) -> str:
     """The safety service's tripped watchdogs, e.g. "  human stale, executor holding" ('' when none)."""
     flags = {"human stale": status.human_stale, "perception lost": status.human_source_lost,
+             "person lost (held)": status.human_lost,
              "joint state stale": status.joint_state_stale, "executor holding": status.executor_holding,
              "resyncing": status.resyncing}
     tripped = [name for name, on in flags.items() if on]

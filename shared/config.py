@@ -121,6 +121,10 @@ class SafetyConfig(_Section):
         description="an approaching person is anticipated this far ahead (s): one camera frame plus the pipeline latency",
     )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
+    lost_human_hold_s: float = Field(
+        default=2.0, gt=0, le=60,
+        description="a capsule perception stops seeing is held this long (s) from its last valid one, imitation stopped",
+    )
     joint_state_timeout_s: float = Field(default=0.1, gt=0, le=60)
     relax_penalty: float = Field(default=1e4, gt=0)
     u_min: NegativeJointVector | None = Field(default=None, description="lower velocity bound per joint (rad/s); null: −u_max")

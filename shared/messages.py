@@ -188,9 +188,10 @@ class SafetyStatus(Message):
     human_source_lost: bool = Field(default=False, description="perception's liveliness token is gone")
     executor_holding: bool = Field(default=False, description="the executor reports its commands stale")
     resyncing: bool = Field(default=False, description="q_cbf is moving (rate-limited) to a displaced robot")
+    human_lost: bool = Field(default=False, description="capsules of a person that vanished are held")
     watchdog_trips: dict[str, int] = Field(
-        default_factory=dict, description="times each watchdog tripped: human_state, human_source, joint_state, "
-        "executor_command, resync"
+        default_factory=dict, description="times each watchdog tripped: human_state, human_source, human_lost, "
+        "joint_state, executor_command, resync"
     )
     dropped: dict[str, int] = Field(default_factory=dict, description="invalid messages per topic")
     config_version: int = Field(default=0, ge=0)

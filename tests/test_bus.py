@@ -163,3 +163,31 @@ def test_unknown_topic_is_a_clear_error() -> None:
         with pytest.raises(ValueError, match="unknown topic"):
             bus.publisher("robot/nope")
     assert topic_key("g1", "human/state") == "safemimic/g1/human/state"
+
+
+def test_newest_decodes_only_the_newest_valid_sample_of_a_burst() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    listen = BusConfig(mode="peer", listen=[endpoint], multicast_scouting=False)
+    with Bus(listen, "newest", "reader") as reader, \
+            Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "newest", "writer") as writer:
+        newest = reader.newest("robot/joint_state")
+        assert newest.get() is None
+        publisher = writer.publisher("robot/joint_state")
+        state = sample_messages()["robot/joint_state"]
+        deadline = time.monotonic() + 10
+        while newest.get() is None:  # the route propagates
+            publisher.put(state.model_copy())
+            assert time.monotonic() < deadline, "no sample arrived"
+            time.sleep(0.05)
+        superseded0, count0 = reader.superseded["robot/joint_state"], newest.count
+        for i in range(500):  # a burst: none of it is decoded until read
+            publisher.put(state.model_copy(update={"stamp": 10.0 + i}))
+        writer.put_raw("robot/joint_state", b"\x93 not a message")  # the newest sample is invalid
+        time.sleep(0.5)
+        assert newest.count == count0  # nothing read yet
+        received = newest.get()
+        assert received is not None and received.message.stamp == 10.0 + 499  # the newest valid one
+        assert newest.count == count0 + 1
+        assert reader.superseded["robot/joint_state"] - superseded0 == 499
+        assert reader.dropped["robot/joint_state"] == 1
+        assert newest.get() is received  # nothing new: the same holding

@@ -466,7 +466,8 @@ def test_status_reports_the_newest_safety_status(api: ApiServer, bus: Bus) -> No
     assert 0.0 <= status["status_age_s"] < 1.0 and status["solve_time_ms"] >= 0.012
     assert status["applied_config_version"] == fake.version
     assert status["config_version"] == api.http.get("/api/config").json()["version"]
-    assert status["watchdogs"] == {"human_stale": False, "human_source_lost": False, "joint_state_stale": False,
+    assert status["watchdogs"] == {"human_stale": False, "human_source_lost": False, "human_lost": False,
+                                   "joint_state_stale": False,
                                    "executor_holding": True, "resyncing": False}
     assert status["watchdog_trips"] == {"executor_command": 2}
 

@@ -418,6 +418,31 @@ def test_stale_human_keeps_capsules_and_stops_imitating(service: SafetyService) 
         HumanState.model_validate({**human_state(np.zeros(8), person(0.2)[1]).model_dump(), "frame_id": "camera"})
 
 
+def test_vanished_person_is_held_and_stops_imitating_until_forgotten(service: SafetyService) -> None:
+    full = load_config(environ={}).model_dump(mode="json")
+    full["safety"]["lost_human_hold_s"] = hold = 0.05
+    service.on_config(ConfigUpdate(stamp=0.0, version=2, config=full))  # a hot field: same pipeline
+    pipeline = service.pipeline
+    seen = human_state(arm_forward(), person(1.0)[1])
+    service.human.set(seen)
+    result = service.tick(service.human.get().received + 0.01)
+    assert service.pipeline is pipeline and service.conf.safety.lost_human_hold_s == hold
+    assert np.abs(result.u).max() > 0.1 and not service._memory.lost  # imitating
+    gone = seen.model_copy(update={"seq": 1, "capsule_valid": np.zeros(7, bool), "theta_valid": np.zeros(8, bool)})
+    service.human.set(gone)  # fresh, but the whole person is invalid
+    result = service.tick(service.human.get().received + 0.01)
+    assert service._memory.lost and not service._human_stale
+    assert result.rows.min_h(False) is not None  # the remembered capsules are still avoided
+    np.testing.assert_allclose(result.u, 0.0, atol=1e-9)  # q_nom = q_cbf: no longer imitating
+    assert service.watchdog_trips["human_lost"] == 1
+    service._publish_status(0.0, result, result.mode)  # SafetyStatus.human_lost is reported
+    time.sleep(hold + 0.01)
+    service.human.set(gone.model_copy(update={"seq": 2}))  # past the hold: forgotten
+    result = service.tick(service.human.get().received + 0.01)
+    assert not service._memory.lost and result.rows.min_h(False) is None  # rows disabled
+    assert service.watchdog_trips["human_lost"] == 1
+
+
 def test_config_update_swaps_pipeline_and_rate(service: SafetyService) -> None:
     full = load_config(environ={}).model_dump(mode="json")
     # a parameter-only change is applied in place: same pipeline, new FilterParams

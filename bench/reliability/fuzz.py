@@ -30,7 +30,11 @@ Everything runs the real code, in this process, with no mocks:
     than the point filter takes to re-anchor (``reacquire_frames``: staying longer is a real move),
     vanish (NaN) or come with zero confidence, through perception → retargeting → CBF-QP → MuJoCo in
     lockstep (:func:`services.evaluate.episode.run_episode`, the services' code): every q_cbf
-    finite, every step within u_max·Δt, min h over the robot–human pairs the filter sees ≥ −1 mm.
+    finite, every step within u_max·Δt, and never a step in which the robot's own motion took it
+    deeper than −1 mm into the *true* person (:func:`robot_deepening`). A person who moves into the
+    robot while unseen can end up inside it whatever the robot does (it stops and holds the last
+    capsules it saw: ``safety.lost_human_hold_s``); the robot must never be the one that closes in.
+    The min h the filter saw and the true one are reported.
 ``fuzz_messages``
     the number of hostile messages sent in all (≥ 100,000 in the full run).
 """
@@ -60,7 +64,8 @@ from services.executor.service import ExecutorService
 from services.perception.service import PerceptionService
 from services.perception.sources import open_source
 from services.safety.filter import VIOLATION_TOL
-from services.safety.service import SafetyService
+from services.safety.assembly import build_pipeline
+from services.safety.service import SafetyService, external_capsules
 from shared.bus import TOPICS, Bus, topic_key
 from shared.codec import (
     MAX_MESSAGE_BYTES,
@@ -491,6 +496,9 @@ class Target:
     ``refused()``: the service's count of refused messages on the topic so far; ``accepted()``: of
     valid ones taken in (None where the service keeps none); ``holds(message)``: whether the service
     now holds or has applied ``message``; ``tick()``: one step of the service, returning problems.
+    ``superseded()``: for a :class:`~shared.bus.Newest` input (decoded when the tick reads it, the
+    older samples of one read superseded unseen), whose payloads are therefore sent one at a time,
+    each read by a tick before the next, so every one is decoded: none may be superseded.
     """
 
     name: str
@@ -499,6 +507,7 @@ class Target:
     holds: Callable[[Message], bool]
     tick: Callable[[], list[str]]
     accepted: Callable[[], int] | None = None
+    superseded: Callable[[], int] | None = None
 
 
 @dataclass
@@ -511,6 +520,7 @@ class TargetOutcome:
     refused_counted: int = 0
     accepted_counted: int | None = None
     replayed: int = 0
+    superseded: int = 0
     ticks: int = 0
     kinds: Counter[str] = field(default_factory=Counter)
     problems: list[str] = field(default_factory=list)
@@ -519,7 +529,7 @@ class TargetOutcome:
         return {
             "sent": self.sent, "valid": self.accepted_expected, "refused_expected": self.refused_expected,
             "refused_counted": self.refused_counted, "accepted_counted": self.accepted_counted,
-            "replayed": self.replayed, "ticks": self.ticks, "kinds": dict(self.kinds),
+            "replayed": self.replayed, "superseded": self.superseded, "ticks": self.ticks, "kinds": dict(self.kinds),
         }
 
 
@@ -529,10 +539,25 @@ def fuzz_target(target: Target, stream: Stream, injector: Bus, n: int, burst: in
     _await_route(injector, target.topic)
     refused0 = target.refused()
     accepted0 = target.accepted() if target.accepted else 0
+    superseded0 = target.superseded() if target.superseded else 0
+
+    def read(sent: int) -> bool:
+        """A Newest input has read ``sent`` payloads (ticking it until then, bounded)."""
+        assert target.accepted is not None
+        deadline = time.monotonic() + SETTLE_TIMEOUT_S
+        while (target.refused() - refused0 + target.accepted() - accepted0 + target.superseded() - superseded0) < sent:
+            out.problems += _tick(target)
+            out.ticks += 1
+            if time.monotonic() > deadline:
+                return False
+        return True
     while out.sent < n:
         b = stream.burst(min(burst, n - out.sent))
-        for payload in b.payloads:
+        for i, payload in enumerate(b.payloads, start=1):
             injector.put_raw(target.topic, payload)
+            if target.superseded is not None and not read(out.sent + i):
+                out.problems.append(f"{target.name}: payload {out.sent + i} never read")
+                break
         out.sent += len(b.payloads)
         out.refused_expected += b.refused
         out.accepted_expected += b.accepted
@@ -542,12 +567,12 @@ def fuzz_target(target: Target, stream: Stream, injector: Bus, n: int, burst: in
         while True:
             out.problems += _tick(target)
             out.ticks += 1
-            refused = target.refused() - refused0
-            if refused == out.refused_expected and target.holds(b.last):
+            if target.refused() - refused0 == out.refused_expected and target.holds(b.last):
                 break
             if time.monotonic() > deadline:
                 out.problems.append(
-                    f"{target.name}: after {out.sent} payloads {refused} refused (expected {out.refused_expected}), "
+                    f"{target.name}: after {out.sent} payloads {target.refused() - refused0} refused "
+                    f"(expected {out.refused_expected}), "
                     f"last valid message {'held' if target.holds(b.last) else 'not held'}"
                 )
                 break
@@ -555,6 +580,10 @@ def fuzz_target(target: Target, stream: Stream, injector: Bus, n: int, burst: in
         if out.problems:
             break
     out.refused_counted = target.refused() - refused0
+    if target.superseded is not None:
+        out.superseded = target.superseded() - superseded0
+        if out.superseded:
+            out.problems.append(f"{target.name}: {out.superseded} payloads superseded unread")
     if target.accepted is not None:
         out.accepted_counted = target.accepted() - accepted0
         if out.accepted_counted != out.accepted_expected:
@@ -655,7 +684,7 @@ def fuzz_safety(budget: Budget, hostile: Hostile) -> CheckResult:
 
             targets = [
                 Target("safety human/state", "human/state", refused("human/state"), _holds_latest(svc.human), tick,
-                       lambda: svc.human.count),
+                       lambda: svc.human.count, lambda: svc.bus.superseded["human/state"]),
                 Target("safety robot/joint_state", "robot/joint_state", refused("robot/joint_state"),
                        _holds_latest(svc.joint_state), tick, lambda: svc.joint_state.count),
                 Target("safety config", "config", refused("config"), config_applied, tick),
@@ -813,6 +842,34 @@ def glitched(frames: tuple, rng: np.random.Generator, jump_frames: int) -> tuple
     return out, started
 
 
+def robot_deepening(conf: StackConfig, episode: Any, truth: Any) -> tuple[int, float]:
+    """Steps in which the robot's own motion took it deeper into the *true* (unglitched) person.
+
+    At step k the true person is ``truth``'s state for the frame the filter was using; the robot
+    went from q_cbf[k−1] to q_cbf[k]. A step counts when the true robot–human h after it is below
+    −:data:`VIOLATION_TOL` and lower than before it (the person held still): the robot, not the
+    person, closed in. Returns (such steps, lowest true h over the run, m).
+    """
+    pipeline = build_pipeline(conf)
+    human_rows = ~pipeline.pairs.is_self
+    deeper, lowest, frame = 0, math.inf, -2
+    for k in range(1, len(episode.t)):
+        if episode.human[k] < 0:
+            continue
+        if episode.human[k] != frame:
+            frame = int(episode.human[k])
+            pipeline.barrier.set_external(*external_capsules(truth.states[frame], pipeline.pairs.n_external, False))
+        before = pipeline.filter.rows_at(episode.q_cbf[k - 1])
+        after = pipeline.filter.rows_at(episode.q_cbf[k])
+        rows = human_rows[: len(after.h)] & after.enabled
+        if not rows.any():
+            continue
+        h_before, h_after = before.h[rows], after.h[rows]
+        lowest = min(lowest, float(h_after.min()))
+        deeper += int(((h_after < -VIOLATION_TOL) & (h_after < h_before - 1e-9)).any())
+    return deeper, lowest
+
+
 def _min_human_h(episode: Any) -> float | None:
     """The lowest h over the robot–human pairs of an episode (None: never a person)."""
     human_h = episode.h[:, ~episode.pairs.is_self]
@@ -831,7 +888,9 @@ def fuzz_keypoint_glitches(budget: Budget, seed: int) -> CheckResult:
         frames, glitches = glitched(clean.frames, rng, conf.perception.point_filter.reacquire_frames - 1)
         track = perceive(conf, EvaluationInput(f"{clean.name} glitched", tuple(frames), clean.fps))
         episode = run_episode(conf, track, clean.seconds, enforce=True)
-        baseline = run_episode(conf, perceive(conf, clean), clean.seconds, enforce=True)
+        truth = perceive(conf, clean)
+        baseline = run_episode(conf, truth, clean.seconds, enforce=True)
+        deeper, lowest_true_h = robot_deepening(conf, episode, truth)
         dt = 1.0 / conf.safety.rate_hz
         steps = np.abs(np.diff(episode.q_cbf, axis=0))
         rate_ratio = float((steps / (np.asarray(conf.safety.u_max) * dt)).max())
@@ -843,13 +902,14 @@ def fuzz_keypoint_glitches(budget: Budget, seed: int) -> CheckResult:
             "invalid_frames": track.counters.invalid_frames, "finite": finite, "max_step_over_u_max_dt": round(rate_ratio, 4),
             "min_h_human_m": min_h, "min_h_human_without_glitches_m": min_h_clean, "modes": dict(Counter(MODES[i].value for i in episode.mode)),
             "robot_human_contact_steps": int(episode.contact_steps[:, 1].astype(bool).sum()),
+            "robot_deepening_steps": deeper, "min_true_h_m": lowest_true_h,
         }
         if not finite:
             problems.append(f"{name}: non-finite q_cbf or u*")
         if rate_ratio > 1.0 + 1e-9:
             problems.append(f"{name}: a step moved {rate_ratio:.3f} × u_max·Δt")
-        if min_h is not None and min_h < -VIOLATION_TOL:
-            problems.append(f"{name}: min h robot–human {min_h * 1e3:.2f} mm")
+        if deeper:
+            problems.append(f"{name}: in {deeper} steps the robot moved deeper into the true person")
     return CheckResult("fuzz_keypoint_glitches", not problems, {
         "scenarios": runs, "seconds": round(time.monotonic() - started, 1), "problems": problems[:_KEPT],
     })

@@ -295,7 +295,7 @@ class StatusResponse(_View):
     deadline_misses: int | None
     human_stale: bool | None
     watchdogs: dict[str, bool] = Field(
-        description="the safety service's watchdogs now: human_stale, human_source_lost, joint_state_stale, "
+        description="the safety service's watchdogs now: human_stale, human_source_lost, human_lost, joint_state_stale, "
         "executor_holding, resyncing (empty until a SafetyStatus arrives)"
     )
     watchdog_trips: dict[str, int] = Field(description="times each watchdog tripped since the safety service started")
@@ -323,7 +323,7 @@ class StatusResponse(_View):
             h_min_human=s.min_h_human, active_constraints=s.active_constraints, total_constraints=s.total_constraints,
             solve_time_ms=s.qp_solve_time_ms, step_time_ms=s.step_time_ms, deadline_misses=s.deadline_misses,
             human_stale=s.human_stale, human_age_s=human_age, applied_config_version=s.config_version,
-            watchdogs={"human_stale": s.human_stale, "human_source_lost": s.human_source_lost,
+            watchdogs={"human_stale": s.human_stale, "human_source_lost": s.human_source_lost, "human_lost": s.human_lost,
                        "joint_state_stale": s.joint_state_stale, "executor_holding": s.executor_holding,
                        "resyncing": s.resyncing},
             watchdog_trips=s.watchdog_trips,

@@ -4,10 +4,12 @@
 (``open_source``: a DESIGN §6 recording, normalised and placed, or a scripted scenario) and
 :func:`perceive` runs the perception pipeline over every frame once, so both runs see the same
 human. :func:`run_episode` then steps at the safety rate: at each control step the newest human
-state (zero-order hold, stale after ``safety.human_timeout_s`` like the safety service) sets the
-barrier's external capsules and q_nom, one CBF-QP step gives q_cbf and u*, and the MuJoCo executor
-servos to them for one control period and reports its contacts. ``enforce=False`` is the same
-loop with the CBF rows left out of the QP (u* = clip(u_ref)); every h is still evaluated.
+state (zero-order hold, stale after ``safety.human_timeout_s``; capsules that turn invalid held
+by :class:`~services.safety.human_memory.HumanMemory` — both like the safety service) sets the
+barrier's external capsules and q_nom (q_cbf while stale or lost), one CBF-QP step gives q_cbf and
+u*, and the MuJoCo executor servos to them for one control period and reports its contacts.
+``enforce=False`` is the same loop with the CBF rows left out of the QP (u* = clip(u_ref)); every
+h is still evaluated.
 
 Time is source time from the first frame (s); the loop is deterministic for a given input.
 """
@@ -30,7 +32,8 @@ from services.perception.stream import SkeletonFrame
 from services.safety.assembly import SafetyPipeline, build_pipeline
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import PairSet
-from services.safety.service import external_capsules, warm_up
+from services.safety.human_memory import HumanMemory
+from services.safety.service import warm_up
 from shared.config import StackConfig
 from shared.messages import HumanState, SafetyMode
 
@@ -170,7 +173,8 @@ def run_episode(
         pairs=safety.pairs,
     )
     use_velocity = conf.safety.human_velocity_term
-    timeout = conf.safety.human_timeout_s
+    timeout, hold = conf.safety.human_timeout_s, conf.safety.lost_human_hold_s
+    memory = HumanMemory()
     q_nom = safety.filter.q_cbf.copy()  # no human yet: hold
     newest, applied, stale = -1, -1, False
     executor.start()
@@ -181,15 +185,14 @@ def run_episode(
             state = human.states[newest]
             now_stale = t - human.t[newest] > timeout
             if newest != applied or now_stale != stale:
-                safety.barrier.set_external(
-                    *external_capsules(state, safety.pairs.n_external, use_velocity and not now_stale)
-                )
+                memory.update(state, human.t[newest], hold)
+                safety.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity and not now_stale))
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     q_nom = safety.retargeter(state.theta, state.theta_valid)
                 if newest != applied:
                     executor.set_human(state.capsules, state.capsule_radii, state.capsule_valid)
                 applied, stale = newest, now_stale
-        result = safety.filter.step(safety.filter.q_cbf.copy() if stale else q_nom, dt)
+        result = safety.filter.step(safety.filter.q_cbf.copy() if stale or memory.lost else q_nom, dt)
         executor.apply_command(result.q_cbf, result.u)
         executor.tick()
         report = executor.contacts()

@@ -12,7 +12,8 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    never in a jump;
 3. the newest :class:`~shared.messages.HumanState` (zero-order hold): its capsules become the
    barrier's external capsules and θ is retargeted to q_nom. No human yet: no external capsules,
-   q_nom = q_cbf (hold).
+   q_nom = q_cbf (hold). A capsule that turns invalid is held from memory for
+   ``safety.lost_human_hold_s`` (:class:`~services.safety.human_memory.HumanMemory`).
 4. one CBF-QP step with Δt = the nominal period; the command (q_cbf, u*) is checked finite and
    published on ``robot/command`` (a non-finite one is replaced by the last command, counted).
    Every command differs from the previous one by at most u_max·Δt per joint;
@@ -25,6 +26,10 @@ Watchdogs (each shown in SafetyStatus and counted in ``watchdog_trips`` when it 
   imitating: q_nom = q_cbf (``human_stale``);
 - ``human_source``: the perception service's liveliness token is gone (its host crashed or its link
   was cut: noticed within the Zenoh lease) — the same as a stale human state (``human_source_lost``);
+- ``human_lost``: a fresh HumanState marks invalid a capsule that was valid within
+  ``safety.lost_human_hold_s`` (the person vanished from view) — keep its last valid capsule
+  without its velocity term and stop imitating: q_nom = q_cbf, until the capsule is valid again or
+  forgotten after the hold (``human_lost``);
 - ``joint_state``: no JointState for ``safety.joint_state_timeout_s`` — keep integrating from
   q_cbf (``joint_state_stale``);
 - ``executor_command``: the executor reports its commands stale and holds (``executor_holding``);
@@ -56,7 +61,8 @@ import numpy as np
 
 from services.safety.assembly import SafetyPipeline, build_pipeline, make_retargeter
 from services.safety.filter import FilterParams, StepResult
-from shared.bus import Bus, Latest, Received
+from services.safety.human_memory import HumanMemory, external_capsules
+from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
 from shared.cli_args import add_bus_arguments, config_from_args
@@ -98,7 +104,7 @@ _MAX_CONSECUTIVE_ERRORS = 100
 #: robot.* or safety.* field (model, pair preset, backend, and whatever is added later) rebuilds
 #: the pipeline, so no setting is ever silently ignored.
 _HOT_SAFETY_FIELDS = frozenset(f.name for f in dataclasses.fields(FilterParams)) | {
-    "rate_hz", "status_rate_hz", "human_timeout_s", "human_velocity_term",
+    "rate_hz", "status_rate_hz", "human_timeout_s", "human_velocity_term", "lost_human_hold_s",
 }
 
 
@@ -128,26 +134,6 @@ def warm_up(pipeline: SafetyPipeline, dt: float, q: np.ndarray | None = None,
     filt.reset(q)
 
 
-def external_capsules(
-    message: HumanState, n_external: int, use_velocity: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """The barrier's external capsule arrays (endpoints, radii, valid, velocities) for one person.
-
-    The pair set fixes the number of external slots (7 per person; the ``paper72`` preset has a
-    second person): this person fills the first 7, the other slots stay invalid (disabled rows).
-    """
-    n = min(n_external, message.capsules.shape[0])
-    endpoints = np.zeros((n_external, 2, 3))
-    radii = np.zeros(n_external)
-    valid = np.zeros(n_external, bool)
-    endpoints[:n], radii[:n], valid[:n] = message.capsules[:n], message.capsule_radii[:n], message.capsule_valid[:n]
-    velocities = None
-    if use_velocity and message.capsule_velocities is not None:
-        velocities = np.zeros((n_external, 2, 3))
-        velocities[:n] = message.capsule_velocities[:n]
-    return endpoints, radii, valid, velocities
-
-
 def _finite_or_none(value: float | None) -> float | None:
     return value if value is not None and math.isfinite(value) else None
 
@@ -165,7 +151,8 @@ class SafetyService:
     """The safety service's state and one control tick; :meth:`run` drives it at the fixed rate.
 
     ``bus`` defaults to a new :class:`~shared.bus.Bus` from ``conf.bus`` (closed by :meth:`close`).
-    Inputs: ``human`` and ``joint_state`` (:class:`~shared.bus.Latest` holders fed by the bus) and
+    Inputs: ``human`` (:class:`~shared.bus.Newest`: decoded when a tick reads it), ``joint_state``
+    (a :class:`~shared.bus.Latest` holder fed by the bus) and
     :meth:`on_config` (the ``config`` subscriber). :meth:`tick` runs one control step.
     The public counters (``ticks``, ``deadline_misses``, ``watchdog_trips``, ``nonfinite_holds``,
     ``config_version``) and :meth:`counters` describe what happened so far.
@@ -189,6 +176,7 @@ class SafetyService:
         self._last_q = self.pipeline.filter.q_cbf.copy()  # last published command
         self._human_used: Received[HumanState] | None = None  # the human state the barrier holds
         self._human_stale = False
+        self._memory = HumanMemory()  # the barrier's external capsules: held while a person is lost
         self._human_source_lost = False  # the perception service's liveliness token went away
         self._executor_seen = False  # an executor's liveliness token has been seen
         self._human_dirty = True  # re-apply the human state (new message, config change)
@@ -202,13 +190,14 @@ class SafetyService:
         self._rejected: Counter[str] = Counter()  # valid messages we refused (config, frame, output)
         self._config_lock = threading.Lock()
         self._pending: _PendingConfig | None = None
-        self.human: Latest[HumanState] = Latest()
         self._owns_bus = bus is None
         self.bus = bus if bus is not None else Bus(conf.bus, conf.robot_id, SERVICE_NAME)
         try:
             self._command_pub = self.bus.publisher("robot/command")
             self._status_pub = self.bus.publisher("safety/status")
-            self.bus.subscribe("human/state", self.human.set)  # HumanState is validated in the robot frame
+            # decoded when a tick reads it: a burst of human states costs the loop no GIL (HumanState
+            # is validated in the robot frame)
+            self.human: Newest[HumanState] = self.bus.newest("human/state")  # type: ignore[assignment]
             self.joint_state: Latest[JointState] = self.bus.latest("robot/joint_state")  # type: ignore[assignment]
             self.bus.subscribe("config", self.on_config)
             self.bus.watch_alive(self.on_alive)
@@ -310,9 +299,9 @@ class SafetyService:
         pipeline = self.pipeline
         if self._resync_target is not None:
             q_nom = self._resync_target
-        elif human is not None and not self._human_stale:
+        elif human is not None and not self._human_stale and not self._memory.lost:
             q_nom = self._q_nom
-        else:  # no person, or not a current one: stop imitating, keep avoiding
+        else:  # no person, not a current one, or part of one lost: stop imitating, keep avoiding
             q_nom = pipeline.filter.q_cbf.copy()
         result = pipeline.filter.step(q_nom, self.period)
 
@@ -411,11 +400,14 @@ class SafetyService:
         if received is self._human_used and stale == self._human_stale and not self._human_dirty:
             return received
         message = received.message
-        use_velocity = self.conf.safety.human_velocity_term and not stale
-        self.pipeline.barrier.set_external(*external_capsules(message, self.pipeline.pairs.n_external, use_velocity))
+        safety = self.conf.safety
+        self._memory.update(message, received.received, safety.lost_human_hold_s)
+        use_velocity = safety.human_velocity_term and not stale
+        self.pipeline.barrier.set_external(*self._memory.capsules(self.pipeline.pairs.n_external, use_velocity))
         if not stale:  # stale: the tick stops imitating (q_nom = q_cbf)
             self._q_nom = self.pipeline.retargeter(message.theta, message.theta_valid)
         self._human_used, self._human_stale, self._human_dirty = received, stale, False
+        self._watch("human_lost", self._memory.lost, f"held: {', '.join(self._memory.lost_capsules)}")
         return received
 
     def _publish_status(self, now: float, result: StepResult, mode: SafetyMode) -> None:
@@ -434,6 +426,7 @@ class SafetyService:
                 human_stale=self._human_stale,
                 joint_state_stale=self._joint_state_seen is None or "joint_state" in self._tripped,
                 human_source_lost=self._human_source_lost,
+                human_lost=self._memory.lost,
                 executor_holding="executor_command" in self._tripped,
                 resyncing=self._resync_target is not None,
                 watchdog_trips=dict(self.watchdog_trips),
@@ -526,6 +519,7 @@ class SafetyService:
             "step_max_ms": float(steps.max()),
             "max_late_ms": self.max_late_s * 1e3,
             "resyncs": self.resyncs,
+            "superseded": {topic: int(n) for topic, n in self.bus.superseded.items() if n},
             "watchdog_trips": dict(self.watchdog_trips),
             "nonfinite_holds": self.nonfinite_holds,
             "tick_errors": self.tick_errors,

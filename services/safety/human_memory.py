@@ -1,0 +1,100 @@
+"""The barrier's external capsules from the HumanState stream: a person who vanishes is remembered.
+
+Perception marks a capsule invalid when it no longer sees that body part (occlusion, zero
+confidence, the whole person gone beyond its point filter's hold). Absence of evidence is not
+absence of the person, so per capsule slot :class:`HumanMemory` keeps the last valid capsule
+(endpoints, radius) and when it was last valid, and applies this rule at each fresh HumanState
+received at time ``now``:
+
+- a slot valid in the message is used as it is (with its measured velocity when asked for);
+- a slot the message marks invalid that was valid within ``hold_s`` (``safety.lost_human_hold_s``)
+  is *lost*: its remembered capsule stays in the barrier, without a velocity term (the person may
+  still be there), and while any slot is lost the robot stops imitating (q_nom = q_cbf);
+- a lost slot last valid more than ``hold_s`` ago is forgotten (its rows are disabled) and
+  imitation may resume with the remaining valid capsules; a slot never seen valid (legs outside
+  the camera's view) is never lost and never blocks imitation.
+
+Time is the caller's clock (the safety service: local receive time; the evaluator: source time).
+Ages are taken at each fresh message only: between messages nothing changes, and a stale human
+(no message for ``safety.human_timeout_s``) keeps every capsule the barrier holds. Updating again
+with the same message and time gives the same result.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from shared.messages import HumanState
+from shared.names import CAPSULE_NAMES
+
+
+class ExternalCapsules(NamedTuple):
+    """The barrier's external capsule arrays, as ``set_external`` takes them (E external slots):
+    endpoints (E,2,3) m, radii (E,) m, valid (E,) bool, velocities (E,2,3) m/s or None."""
+
+    endpoints: np.ndarray
+    radii: np.ndarray
+    valid: np.ndarray
+    velocities: np.ndarray | None
+
+
+def padded(
+    n_external: int, endpoints: np.ndarray, radii: np.ndarray, valid: np.ndarray, velocities: np.ndarray | None
+) -> ExternalCapsules:
+    """One person's capsules in the pair set's ``n_external`` slots (7 per person; the ``paper72``
+    preset has a second person): this person fills the first 7, the other slots stay invalid
+    (disabled rows)."""
+    n = min(n_external, endpoints.shape[0])
+    out = ExternalCapsules(np.zeros((n_external, 2, 3)), np.zeros(n_external), np.zeros(n_external, bool),
+                           None if velocities is None else np.zeros((n_external, 2, 3)))
+    out.endpoints[:n], out.radii[:n], out.valid[:n] = endpoints[:n], radii[:n], valid[:n]
+    if out.velocities is not None:
+        out.velocities[:n] = velocities[:n]
+    return out
+
+
+def external_capsules(message: HumanState, n_external: int, use_velocity: bool) -> ExternalCapsules:
+    """One message's capsules as they are (no memory) in ``n_external`` slots (see :func:`padded`)."""
+    velocities = message.capsule_velocities if use_velocity else None
+    return padded(n_external, message.capsules, message.capsule_radii, message.capsule_valid, velocities)
+
+
+class HumanMemory:
+    """The last valid capsule of every slot and the rule of the module doc (:meth:`update`, :meth:`capsules`)."""
+
+    def __init__(self) -> None:
+        n = len(CAPSULE_NAMES)
+        self._endpoints = np.zeros((n, 2, 3))  # last valid capsule per slot
+        self._radii = np.zeros(n)
+        self._last_valid = np.full(n, -np.inf)  # when each slot was last valid (-inf: never)
+        self._valid = np.zeros(n, bool)  # in the barrier: valid in the newest message, or lost
+        self._lost = np.zeros(n, bool)  # remembered, not valid in the newest message
+        self._velocities: np.ndarray | None = None  # the newest message's; zero on lost slots
+
+    @property
+    def lost(self) -> bool:
+        """Some slot is lost (held from memory): the robot must not imitate."""
+        return bool(self._lost.any())
+
+    @property
+    def lost_capsules(self) -> tuple[str, ...]:
+        """The names (CAPSULE_NAMES) of the lost slots."""
+        return tuple(name for name, lost in zip(CAPSULE_NAMES, self._lost, strict=True) if lost)
+
+    def update(self, message: HumanState, now: float, hold_s: float) -> None:
+        """Take a fresh ``message`` received at ``now`` (s, the caller's clock); a slot invalid in it
+        stays lost while it was valid at most ``hold_s`` (s) before ``now``."""
+        seen = message.capsule_valid
+        self._endpoints[seen], self._radii[seen], self._last_valid[seen] = message.capsules[seen], message.capsule_radii[seen], now
+        self._lost = ~seen & (now - self._last_valid <= hold_s)
+        self._valid = seen | self._lost
+        self._velocities = None
+        if message.capsule_velocities is not None:
+            self._velocities = np.where(seen[:, None, None], message.capsule_velocities, 0.0)
+
+    def capsules(self, n_external: int, use_velocity: bool) -> ExternalCapsules:
+        """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
+        ``use_velocity``: with the measured velocities of the currently valid slots."""
+        return padded(n_external, self._endpoints, self._radii, self._valid, self._velocities if use_velocity else None)

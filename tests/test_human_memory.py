@@ -1,0 +1,84 @@
+"""HumanMemory: a capsule that turns invalid is held for ``hold_s``, then forgotten."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.safety.human_memory import HumanMemory, external_capsules
+from shared.messages import HumanState
+from shared.names import CAPSULE_NAMES
+
+HOLD_S = 2.0
+LEGS = [CAPSULE_NAMES.index("left_thigh"), CAPSULE_NAMES.index("right_thigh")]
+RIGHT_FOREARM = CAPSULE_NAMES.index("right_forearm")
+
+
+def state(x: float, valid: np.ndarray) -> HumanState:
+    """A person whose capsules are offset by ``x`` (m), valid where ``valid``, moving at 1 m/s in x."""
+    n = len(CAPSULE_NAMES)
+    capsules = np.zeros((n, 2, 3))
+    capsules[:, :, 0] = x
+    capsules[:, 1, 2] = 0.3
+    return HumanState(
+        stamp=0.0, keypoints=np.zeros((15, 3)), keypoint_valid=np.ones(15, bool), theta=np.zeros(8),
+        theta_valid=np.ones(8, bool), capsules=capsules, capsule_radii=np.full(n, 0.05 + x / 100),
+        capsule_valid=valid, capsule_velocities=np.tile([1.0, 0.0, 0.0], (n, 2, 1)),
+    )
+
+
+def all_but(*slots: int) -> np.ndarray:
+    valid = np.ones(len(CAPSULE_NAMES), bool)
+    valid[list(slots)] = False
+    return valid
+
+
+def test_nothing_yet_and_valid_capsules_pass_through_padded() -> None:
+    memory = HumanMemory()
+    empty = memory.capsules(7, True)
+    assert not empty.valid.any() and empty.velocities is None and not memory.lost
+    message = state(1.0, np.ones(7, bool))
+    memory.update(message, 0.0, HOLD_S)
+    held, plain = memory.capsules(14, True), external_capsules(message, 14, True)
+    for a, b in zip(held, plain, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert held.valid[:7].all() and not held.valid[7:].any()  # a second person's slots stay disabled
+    assert memory.capsules(14, False).velocities is None
+
+
+def test_an_invalid_slot_is_held_without_velocity_then_forgotten_after_the_hold() -> None:
+    memory = HumanMemory()
+    memory.update(state(1.0, np.ones(7, bool)), 10.0, HOLD_S)
+    memory.update(state(2.0, all_but(RIGHT_FOREARM)), 11.0, HOLD_S)  # the forearm vanished, the rest moved
+    out = memory.capsules(7, True)
+    assert out.valid.all() and memory.lost and memory.lost_capsules == ("right_forearm",)
+    np.testing.assert_array_equal(out.endpoints[RIGHT_FOREARM], state(1.0, np.ones(7, bool)).capsules[RIGHT_FOREARM])
+    np.testing.assert_allclose(out.radii[[RIGHT_FOREARM, 0]], [0.06, 0.07])  # remembered radius, current ones
+    assert not out.velocities[RIGHT_FOREARM].any() and out.velocities[0].any()  # no velocity term when held
+    memory.update(state(2.0, all_but(RIGHT_FOREARM)), 10.0 + HOLD_S, HOLD_S)  # at the hold: still held
+    assert memory.lost
+    memory.update(state(2.0, all_but(RIGHT_FOREARM)), 10.0 + HOLD_S + 0.01, HOLD_S)  # past it: forgotten
+    out = memory.capsules(7, True)
+    assert not memory.lost and not out.valid[RIGHT_FOREARM] and out.valid.sum() == 6
+    memory.update(state(3.0, np.ones(7, bool)), 13.0, HOLD_S)  # seen again: valid, nothing lost
+    assert not memory.lost and memory.capsules(7, True).endpoints[RIGHT_FOREARM, 0, 0] == 3.0
+
+
+def test_the_whole_person_vanishing_is_held_and_the_same_update_twice_changes_nothing() -> None:
+    memory = HumanMemory()
+    memory.update(state(1.0, np.ones(7, bool)), 0.0, HOLD_S)
+    gone = state(0.0, np.zeros(7, bool))
+    memory.update(gone, 0.5, HOLD_S)
+    first = memory.capsules(7, True)
+    memory.update(gone, 0.5, HOLD_S)
+    again = memory.capsules(7, True)
+    assert memory.lost and first.valid.all() and (first.endpoints[:, :, 0] == 1.0).all()
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_slots_never_seen_valid_do_not_block() -> None:
+    memory = HumanMemory()
+    for t in np.arange(0.0, 1.0, 1 / 30):  # legs outside the camera's view throughout
+        memory.update(state(1.0, all_but(*LEGS)), float(t), HOLD_S)
+        assert not memory.lost
+    assert not memory.capsules(7, False).valid[LEGS].any()
