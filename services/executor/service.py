@@ -50,6 +50,7 @@ from shared.config import ConfigError, ExecutorBackend, StackConfig
 from shared.messages import HumanState, JointCommand, JointState
 from shared.robot_spec import RobotSpecError, configured_robot_spec
 from shared.schedule import FixedRateSchedule
+from shared.service import ScheduledService
 
 log = logging.getLogger("safemimic.executor")
 
@@ -94,7 +95,7 @@ def startup_errors(backend: ExecutorBackend) -> tuple[type[Exception], ...]:
     return (SimModelError,)
 
 
-class ExecutorService:
+class ExecutorService(ScheduledService):
     """The executor service's state and one control tick; :meth:`run` drives it in real time.
 
     ``executor`` defaults to :func:`build_executor` (``executor.backend`` of the configured
@@ -126,10 +127,9 @@ class ExecutorService:
         self.command: Latest[JointCommand] = Latest()
         self.human: Latest[HumanState] = Latest()
 
-        self._owns_bus = bus is None
         self.executor.start()
         try:
-            self.bus = bus if bus is not None else Bus(conf.bus, conf.robot_id, SERVICE_NAME)
+            self.open_bus(conf, SERVICE_NAME, bus)
             self._state_pub = self.bus.publisher("robot/joint_state")
             self.bus.subscribe("robot/command", self.command.set)
             self.bus.subscribe("human/state", self.human.set)  # HumanState is validated in the robot frame
@@ -138,32 +138,14 @@ class ExecutorService:
             self.executor.stop()
             raise
 
-    # lifecycle -----------------------------------------------------------------------------
-    def __enter__(self) -> ExecutorService:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def close(self) -> None:
         self.executor.stop()
-        if self._owns_bus:
-            self.bus.close()
+        super().close()
 
     @property
     def period(self) -> float:
         """The control period (s)."""
         return 1.0 / self.conf.executor.rate_hz
-
-    @property
-    def deadline_misses(self) -> int:
-        """Control slots skipped because a tick started a whole period late."""
-        return self.schedule.missed
-
-    @property
-    def max_late_s(self) -> float:
-        """The latest a tick has started (s)."""
-        return self.schedule.max_late_s
 
     # subscriber callback (Zenoh threads) ----------------------------------------------------
     # control tick (the loop's thread) -------------------------------------------------------

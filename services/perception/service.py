@@ -36,6 +36,7 @@ from shared.bus import Bus, topic_key
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, PerceptionConfig, SkeletonSourceName, StackConfig, validate_config
 from shared.messages import ConfigUpdate
+from shared.service import BusService
 
 log = logging.getLogger("safemimic.perception")
 
@@ -51,15 +52,14 @@ def _emit(event: str, **fields: Any) -> None:
     print(json.dumps({"event": event, **fields}), flush=True)
 
 
-class PerceptionService:
+class PerceptionService(BusService):
     """Streams one source through the pipeline onto the bus; :meth:`run` until exhausted or stopped."""
 
     def __init__(self, conf: StackConfig, source: SkeletonSource, bus: Bus | None = None) -> None:
         self.conf = conf
         self.source = source
         self.pipeline = PerceptionPipeline(conf.perception, conf.human)
-        self._owns_bus = bus is None
-        self.bus = bus if bus is not None else Bus(conf.bus, conf.robot_id, SERVICE_NAME)
+        self.open_bus(conf, SERVICE_NAME, bus)
         self.published = 0
         self.errors = 0
         self.config_version = 0
@@ -73,16 +73,6 @@ class PerceptionService:
         except Exception:
             self.close()
             raise
-
-    def __enter__(self) -> PerceptionService:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        if self._owns_bus:
-            self.bus.close()
 
     def on_config(self, update: ConfigUpdate) -> None:
         """Validate an accepted change (Zenoh thread); it is applied before the next frame."""

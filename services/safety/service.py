@@ -65,6 +65,7 @@ from services.safety.human_memory import HumanMemory, external_capsules
 from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
+from shared.service import ScheduledService
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, StackConfig, validate_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
@@ -147,7 +148,7 @@ class _PendingConfig:
     pipeline: SafetyPipeline | None
 
 
-class SafetyService:
+class SafetyService(ScheduledService):
     """The safety service's state and one control tick; :meth:`run` drives it at the fixed rate.
 
     ``bus`` defaults to a new :class:`~shared.bus.Bus` from ``conf.bus`` (closed by :meth:`close`).
@@ -190,8 +191,7 @@ class SafetyService:
         self._rejected: Counter[str] = Counter()  # valid messages we refused (config, frame, output)
         self._config_lock = threading.Lock()
         self._pending: _PendingConfig | None = None
-        self._owns_bus = bus is None
-        self.bus = bus if bus is not None else Bus(conf.bus, conf.robot_id, SERVICE_NAME)
+        self.open_bus(conf, SERVICE_NAME, bus)
         try:
             self._command_pub = self.bus.publisher("robot/command")
             self._status_pub = self.bus.publisher("safety/status")
@@ -206,31 +206,10 @@ class SafetyService:
             self.close()
             raise
 
-    # lifecycle -----------------------------------------------------------------------------
-    def __enter__(self) -> SafetyService:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        if self._owns_bus:
-            self.bus.close()
-
     @property
     def period(self) -> float:
         """The nominal control period Δt (s)."""
         return 1.0 / self.conf.safety.rate_hz
-
-    @property
-    def deadline_misses(self) -> int:
-        """Ticks that started a whole period late or finished after the next one was due."""
-        return self.schedule.missed
-
-    @property
-    def max_late_s(self) -> float:
-        """The latest a tick has started (s)."""
-        return self.schedule.max_late_s
 
     @property
     def resyncs(self) -> int:
