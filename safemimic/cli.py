@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from safemimic import __version__
@@ -57,7 +58,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = module.build_parser(argparse.ArgumentParser(prog=f"safemimic {name}"))
     args = parser.parse_args(rest)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    return int(module.run(args) or 0)
+    code = int(module.run(args) or 0)
+    bus = sys.modules.get("shared.bus")  # only where a Zenoh session was used
+    if bus is not None and bus.hung_closes():
+        # A session close that hung (its router went away at the same moment) would keep the
+        # process alive: leave now, output flushed.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ import json
 import math
 import os
 import secrets
-import signal
 import tempfile
 import threading
 import time
@@ -38,6 +37,7 @@ from shared.bus import Bus
 from shared.config import BusMode, load_config
 from shared.messages import HumanState, JointCommand, JointState, SafetyStatus
 from shared.skeleton import RecordingError, read_recording
+from shared.stop_signals import stop_on_signals
 
 #: Environment variable naming a .npz recording to replay instead of the paper's scenarios.
 SKELETON_ENV = "DEMO_SKELETON"
@@ -180,23 +180,6 @@ def _wait_for_log(child: Child, marker: str, stop: threading.Event, timeout_s: f
     return None
 
 
-class _Stop:
-    """SIGINT/SIGTERM set an event instead of raising inside whatever runs (restored on exit)."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> threading.Event:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, lambda *_: self.event.set())
-        return self.event
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
 def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         print("--duration must be > 0")
@@ -218,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
         print("--viewer: no display here, the executor will run headless (see its log)", flush=True)
     children: list[Child] = []
     watch = Watch()
-    with _Stop() as stop:
+    with stop_on_signals() as stop:
         try:
             children.append(_start("router", router_command(endpoint), run_dir))
             if not _wait_for_log(children[0], "listening", stop):

@@ -78,6 +78,31 @@ def open_session(bus: BusConfig) -> zenoh.Session:
     return zenoh.open(zenoh_config(bus))
 
 
+#: How long closing a session may take (s): a client whose router goes away at the same moment
+#: (a whole stack stopped at once) can block in Zenoh's close.
+CLOSE_TIMEOUT_S = 3.0
+_hung_closes = 0
+
+
+def close_bounded(close: Callable[[], None], timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
+    """Run ``close`` (a session's shutdown) for at most ``timeout_s``; False (logged, counted in
+    :func:`hung_closes`) if it did not return: the process is then left to end without it."""
+    global _hung_closes
+    closer = threading.Thread(target=close, name="zenoh-close", daemon=True)
+    closer.start()
+    closer.join(timeout_s)
+    if closer.is_alive():
+        _hung_closes += 1
+        log.warning("closing the Zenoh session did not finish within %.1f s: leaving it", timeout_s)
+        return False
+    return True
+
+
+def hung_closes() -> int:
+    """Session closes in this process that did not finish (:func:`close_bounded`): exit without waiting for them."""
+    return _hung_closes
+
+
 @dataclass
 class Received(Generic[M]):
     """A message and the local monotonic time it arrived."""
@@ -253,16 +278,21 @@ class Bus:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def close(self) -> None:
-        """Undeclare everything this bus declared and close the session (idempotent)."""
-        for entity in reversed(self._entities):
-            try:
-                entity.undeclare()  # type: ignore[attr-defined]
-            except Exception:  # already undeclared or session closing
-                pass
-        self._entities.clear()
-        if not self._session.is_closed():
-            self._session.close()
+    def close(self) -> bool:
+        """Undeclare everything this bus declared and close the session (idempotent, bounded by
+        :data:`CLOSE_TIMEOUT_S`); False if the close hung (:func:`close_bounded`)."""
+        entities, self._entities = self._entities, []
+
+        def close_now() -> None:
+            for entity in reversed(entities):
+                try:
+                    entity.undeclare()  # type: ignore[attr-defined]
+                except Exception:  # already undeclared or session closing
+                    pass
+            if not self._session.is_closed():
+                self._session.close()
+
+        return close_bounded(close_now)
 
     @property
     def session(self) -> zenoh.Session:

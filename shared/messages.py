@@ -66,7 +66,7 @@ def Array(*shape: int, dtype: type = np.float64) -> Any:
 class Schema(BaseModel):
     """Name and version of a message type; the codec dispatches on it."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
     name: str = Field(max_length=64)
     version: int = Field(ge=1)
 
@@ -76,6 +76,7 @@ class Message(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
+        strict=True,  # no lax coercion from the wire: a stamp of "1.5" or True, a seq of 1.0 are refused
         allow_inf_nan=False,
         arbitrary_types_allowed=True,
         populate_by_name=True,
@@ -166,7 +167,7 @@ class JointCommand(Message):
     SCHEMA_NAME: ClassVar[str] = "JointCommand"
     q: Array(N_JOINTS)
     dq: Array(N_JOINTS)
-    mode: SafetyMode = SafetyMode.NOMINAL
+    mode: SafetyMode = Field(default=SafetyMode.NOMINAL, strict=False)  # the wire carries the value
     human_stamp: float | None = Field(default=None, description="stamp of the HumanState used")
     human_seq: int | None = Field(default=None, ge=0)
 
@@ -175,7 +176,7 @@ class SafetyStatus(Message):
     """Periodic report of the safety service (paper eqs. 4–8 quantities, counters)."""
 
     SCHEMA_NAME: ClassVar[str] = "SafetyStatus"
-    mode: SafetyMode
+    mode: SafetyMode = Field(strict=False)  # the wire carries the value
     min_h_self: float | None = Field(description="min h over self pairs (m); None if no pair")
     min_h_human: float | None = Field(description="min h over robot–human pairs (m); None if no human")
     active_constraints: int = Field(ge=0)

@@ -939,3 +939,22 @@ def test_fuzz_total_at_least_10000() -> None:
     # the fuzzers reached every outcome: decoded messages and each kind of rejection
     for outcome in ("decoded", "MalformedPayload", "InvalidMessage", "UnknownSchema", "SchemaVersionMismatch", "MessageTooLarge"):
         assert FUZZ_OUTCOMES[outcome] > 0, (outcome, dict(FUZZ_OUTCOMES))
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("stamp", "1.5"), ("stamp", True), ("seq", 1.0), ("seq", "3"), ("source", b"bytes"), ("human_stamp", "0.5")],
+)
+def test_lax_coercions_from_the_wire_are_refused(field: str, value: Any) -> None:
+    payload = unpack(encode(make(JointCommand)))
+    payload[field] = value
+    with pytest.raises(InvalidMessage):
+        decode(pack(payload))
+
+
+def test_a_schema_version_of_another_type_is_refused() -> None:
+    for version in (True, 1.0, "1"):
+        payload = unpack(encode(make(JointState)))
+        payload["schema"] = {"name": "JointState", "version": version}
+        with pytest.raises(CodecError):
+            decode(pack(payload))

@@ -1,3 +1,6 @@
-from services.config_api.main import cli
+"""``python -m services.config_api``: the config API (same as ``safemimic config-api``)."""
+import sys
 
-cli()
+from safemimic.cli import main
+
+sys.exit(main(["config-api", *sys.argv[1:]]))

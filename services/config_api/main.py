@@ -102,7 +102,3 @@ def run(args: argparse.Namespace) -> int:
         return 2
     return 0
 
-
-def cli(argv: list[str] | None = None) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    sys.exit(run(build_parser().parse_args(argv)))

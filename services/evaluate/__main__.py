@@ -1,3 +1,6 @@
-from services.evaluate.main import cli
+"""``python -m services.evaluate``: the offline evaluator (same as ``safemimic evaluate``)."""
+import sys
 
-cli()
+from safemimic.cli import main
+
+sys.exit(main(["evaluate", *sys.argv[1:]]))

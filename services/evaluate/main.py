@@ -156,7 +156,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}/metrics.json, contacts.json, joints.png, barriers.png, snapshot.png")
     return 0
 
-
-def cli(argv: list[str] | None = None) -> None:
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    sys.exit(run(build_parser().parse_args(argv)))

@@ -1,3 +1,6 @@
-from services.executor.service import cli
+"""``python -m services.executor``: the executor service (same as ``safemimic executor``)."""
+import sys
 
-cli()
+from safemimic.cli import main
+
+sys.exit(main(["executor", *sys.argv[1:]]))

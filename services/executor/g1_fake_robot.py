@@ -54,6 +54,7 @@ from services.executor.g1_layout import (
     joint_slot,
     variant_of,
 )
+from shared.stop_signals import stop_on_signals
 
 __all__ = ["BALANCE_POSE", "FakeG1", "main"]
 
@@ -187,14 +188,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     robot = FakeG1(DdsLink(args.domain, args.interface), args.mode_machine, args.rate, args.lag)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     signal.signal(signal.SIGUSR1, robot.toggle_state)
-    if args.duration:
-        threading.Timer(args.duration, stop.set).start()
-    print(json.dumps({"event": "ready", "mode_machine": args.mode_machine, "domain": args.domain}), flush=True)
-    robot.run(stop)
+    with stop_on_signals() as stop:
+        if args.duration:
+            threading.Timer(args.duration, stop.set).start()
+        print(json.dumps({"event": "ready", "mode_machine": args.mode_machine, "domain": args.domain}), flush=True)
+        robot.run(stop)
     if args.record:
         robot.save(args.record)
     print(json.dumps({"event": "stopped", **robot.summary()}), flush=True)

@@ -32,7 +32,6 @@ import argparse
 import json
 import logging
 import math
-import signal
 import sys
 import threading
 import time
@@ -51,6 +50,7 @@ from shared.messages import HumanState, JointCommand, JointState
 from shared.robot_spec import RobotSpecError, configured_robot_spec
 from shared.schedule import FixedRateSchedule
 from shared.service import ScheduledService
+from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.executor")
 
@@ -322,9 +322,6 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         print("--duration must be > 0", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     try:
         conf = config_from_args(args, extra)
         refusals = (ConfigError, RobotSpecError, *startup_errors(conf.executor.backend))
@@ -332,14 +329,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"safemimic executor: {exc}", file=sys.stderr)
         return 2
     try:
-        counters = main(conf, stop, args.duration)
+        with stop_on_signals() as stop:
+            counters = main(conf, stop, args.duration)
     except refusals as exc:
         print(f"safemimic executor: {exc}", file=sys.stderr)
         return 2
     print(json.dumps({"event": "stopped", "service": SERVICE_NAME, **counters}), flush=True)
     return 0
 
-
-def cli(argv: list[str] | None = None) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    sys.exit(run(build_parser().parse_args(argv)))

@@ -1,4 +1,6 @@
 """``python -m services.perception``: the perception service (same as ``safemimic perception``)."""
-from services.perception.service import cli
+import sys
 
-cli()
+from safemimic.cli import main
+
+sys.exit(main(["perception", *sys.argv[1:]]))

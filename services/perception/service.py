@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
 import sys
 import threading
 import time
@@ -37,6 +36,7 @@ from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, PerceptionConfig, SkeletonSourceName, StackConfig, validate_config
 from shared.messages import ConfigUpdate
 from shared.service import BusService
+from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.perception")
 
@@ -231,17 +231,11 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(exc, file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     try:
-        main(conf, stop, args.duration)
+        with stop_on_signals() as stop:
+            main(conf, stop, args.duration)
     except SourceUnavailable as exc:
         print(f"perception: {exc}", file=sys.stderr)
         return 2
     return 0
 
-
-def cli(argv: list[str] | None = None) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    sys.exit(run(build_parser().parse_args(argv)))

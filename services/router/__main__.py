@@ -1,3 +1,6 @@
-from services.router.main import cli
+"""``python -m services.router``: the Zenoh router (same as ``safemimic router``)."""
+import sys
 
-cli()
+from safemimic.cli import main
+
+sys.exit(main(["router", *sys.argv[1:]]))

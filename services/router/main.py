@@ -4,21 +4,16 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
-import signal
-import sys
 import threading
 
-from shared.bus import open_session
+from shared.bus import close_bounded, open_session
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import StackConfig
+from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.router")
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
-
-#: how long closing the session may take when stopping (s); clients still connected can hold it up
-CLOSE_TIMEOUT_S = 3.0
 
 
 def main(conf: StackConfig, stop: threading.Event) -> bool:
@@ -32,11 +27,9 @@ def main(conf: StackConfig, stop: threading.Event) -> bool:
         while not stop.wait(0.2):
             pass
     finally:
-        closer = threading.Thread(target=session.close, daemon=True)
-        closer.start()
-        closer.join(CLOSE_TIMEOUT_S)
-    print("zenoh router stopped" if not closer.is_alive() else "zenoh router stopped (session close timed out)", flush=True)
-    return not closer.is_alive()
+        closed = close_bounded(session.close)  # clients still connected can hold it up
+    print("zenoh router stopped" if closed else "zenoh router stopped (session close timed out)", flush=True)
+    return closed
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
@@ -54,14 +47,7 @@ def run(args: argparse.Namespace) -> int:
     args.mode = "router"
     args.listen = args.listen or [DEFAULT_LISTEN]
     conf = config_from_args(args)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    if not main(conf, stop):
-        os._exit(0)  # a hung close must not keep a stopped router alive (zenoh's threads are not daemons)
-    return 0
+    with stop_on_signals() as stop:
+        main(conf, stop)
+    return 0  # a hung close: safemimic.cli leaves without it
 
-
-def cli(argv: list[str] | None = None) -> None:
-    logging.basicConfig(level=logging.INFO)
-    sys.exit(run(build_parser().parse_args(argv)))

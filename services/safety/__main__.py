@@ -1,3 +1,6 @@
-from services.safety.service import cli
+"""``python -m services.safety``: the safety service (same as ``safemimic safety``)."""
+import sys
 
-cli()
+from safemimic.cli import main
+
+sys.exit(main(["safety", *sys.argv[1:]]))

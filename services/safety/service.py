@@ -49,7 +49,6 @@ import dataclasses
 import gc
 import logging
 import math
-import signal
 import sys
 import threading
 import time
@@ -69,6 +68,7 @@ from shared.service import ScheduledService
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, StackConfig, validate_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
+from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.safety")
 
@@ -553,11 +553,9 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.rt_priority <= 99:
         print("--rt-priority must lie in 0..99", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     sys.setswitchinterval(SWITCH_INTERVAL_S)
-    c = main(conf, stop, args.duration, args.rt_priority)
+    with stop_on_signals() as stop:
+        c = main(conf, stop, args.duration, args.rt_priority)
     print(
         f"safety: {c['ticks']} ticks in {c['elapsed_s']:.2f} s ({c['achieved_hz']:.1f} Hz of {c['rate_hz']:.0f}), "
         f"{c['deadline_misses']} deadline misses ({100 * c['miss_ratio']:.2f} %), "
@@ -567,7 +565,3 @@ def run(args: argparse.Namespace) -> int:
     )
     return 0
 
-
-def cli(argv: list[str] | None = None) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    sys.exit(run(build_parser().parse_args(argv)))
