@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from shared.bus import TOPICS, Bus, topic_key
+from shared.codec import encode
 from shared.config import BusConfig
 from shared.messages import (
     ConfigUpdate,
@@ -180,10 +181,11 @@ def test_newest_decodes_only_the_newest_valid_sample_of_a_burst() -> None:
             assert time.monotonic() < deadline, "no sample arrived"
             time.sleep(0.05)
         superseded0, count0 = reader.superseded["robot/joint_state"], newest.count
-        for i in range(500):  # a burst: none of it is decoded until read
-            publisher.put(state.model_copy(update={"stamp": 10.0 + i}))
+        for i in range(500):  # a burst (blocking puts: none lost): none of it is decoded until read
+            writer.put_raw("robot/joint_state", encode(state.model_copy(update={"stamp": 10.0 + i, "seq": i,
+                                                                              "source": "burst"})))
         writer.put_raw("robot/joint_state", b"\x93 not a message")  # the newest sample is invalid
-        time.sleep(0.5)
+        time.sleep(1.0)  # every blocking put is delivered well within this on loopback
         assert newest.count == count0  # nothing read yet
         received = newest.get()
         assert received is not None and received.message.stamp == 10.0 + 499  # the newest valid one
