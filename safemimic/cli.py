@@ -29,6 +29,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reliability": ("bench.reliability.run", "run the reliability checks (watchdogs, rate limits, faults, fuzz, load) → bench/results/reliability.json"),
     "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),
     "health": ("safemimic.health", "which services are alive on the bus (liveliness tokens); exit 0 if the named ones are"),
+    "certs": ("safemimic.certs", "the deployment's CA and one certificate per service (mutual TLS; the router's access control)"),
 }
 
 

@@ -4,7 +4,10 @@ Starts real processes on loopback with the command lines of :mod:`safemimic.stac
 table docker compose is generated from): ``safemimic router`` (Zenoh's router), then
 ``executor`` (MuJoCo), ``safety`` (CBF-QP at 500 Hz), ``perception`` (the paper's two scenarios
 back to back in a loop, or the recording named by ``$DEMO_SKELETON``) and ``config-api`` (REST
-and the web console), all Zenoh clients of the router. This process watches the bus like any
+and the web console), all Zenoh clients of the router. Secure by default: a throwaway CA and one
+certificate per identity are made in the run folder (``safemimic certs stack``), every session
+connects over mutual TLS (``tls/127.0.0.1:PORT``) and the router enforces the access control
+generated from the service table; ``--insecure`` runs today's open tcp bus instead, with a warning. This process watches the bus like any
 other client: it prints the console URL, each service's health (its liveliness token), once a
 second what the safety layer is doing, and at the end a one-screen summary (optionally as JSON).
 
@@ -30,11 +33,21 @@ from typing import Any
 
 import numpy as np
 
+from safemimic.certs import make_stack
 from safemimic.launch import Child, free_port, launch, stop_all
-from safemimic.stack import API_PORT, PAPER_SCENARIOS, SERVICES, Site, command, router_command, write_paper_scenarios
+from safemimic.stack import (
+    API_PORT,
+    PAPER_SCENARIOS,
+    SERVICES,
+    Site,
+    command,
+    router_command,
+    router_endpoint,
+    write_paper_scenarios,
+)
 from services.config_api.token import TOKEN_ENV
 from shared.bus import Bus
-from shared.config import BusMode, load_config
+from shared.config import BusMode, TlsConfig, load_config
 from shared.messages import HumanState, JointCommand, JointState, SafetyStatus
 from shared.skeleton import RecordingError, read_recording
 from shared.stop_signals import stop_on_signals
@@ -156,6 +169,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument("--placement", default="side-by-side", metavar="WHERE",
                         help="where the person stands: side-by-side (default) | facing | recorded | x,y,yaw")
     parser.add_argument("--api-port", type=int, default=API_PORT, metavar="PORT", help=f"web console port (default {API_PORT}; 0: any free port)")
+    parser.add_argument("--insecure", action="store_true",
+                        help="the open tcp bus: no TLS, no access control (anyone on this machine can command the robot)")
     return parser
 
 
@@ -191,10 +206,20 @@ def run(args: argparse.Namespace) -> int:
         print(f"demo: ${SKELETON_ENV}: {exc}")
         return 2
     token = os.environ.get(TOKEN_ENV) or secrets.token_urlsafe(24)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = router_endpoint("127.0.0.1", free_port(), secure=not args.insecure)
+    certs = None if args.insecure else run_dir / "certs"
+    if certs is not None:
+        make_stack(certs, router_hosts=["127.0.0.1"])  # a throwaway CA: this run's sessions only
     api_port = args.api_port or free_port()
     site = Site(router=endpoint, api_store=str(run_dir / "config.json"), skeleton=str(skeleton),
-                placement=args.placement, api_port=api_port, viewer=args.viewer)
+                placement=args.placement, api_port=api_port, viewer=args.viewer,
+                certs=None if certs is None else str(certs))
+    print(f"router: {endpoint}", flush=True)
+    if certs is not None:
+        print(f"certs: {certs}  (mutual TLS; the router's access control: {certs / 'access_control.json5'})", flush=True)
+    else:
+        print("WARNING: --insecure: open tcp bus, no TLS, no access control: anyone on this machine can command "
+              "the robot and switch its safety layer off", flush=True)
     print(f"person: {'the paper scenarios ' + ' + '.join(PAPER_SCENARIOS) if SKELETON_ENV not in os.environ else skeleton}"
           f" ({args.placement}), looping; logs in {run_dir}", flush=True)
     if args.viewer and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
@@ -203,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
     watch = Watch()
     with stop_on_signals() as stop:
         try:
-            children.append(_start("router", router_command(endpoint), run_dir))
+            children.append(_start("router", router_command(endpoint, site.certs), run_dir))
             if not _wait_for_log(children[0], "listening", stop):
                 print(f"the router did not start:\n{children[0].log_tail()}", flush=True)
                 return 1
@@ -229,8 +254,9 @@ def _watch_stack(args: argparse.Namespace, site: Site, children: list[Child], wa
                  stop: threading.Event, token: str) -> float:
     """Watch the bus until the duration is over, Ctrl-C or a child exits; the seconds watched."""
     conf = load_config()  # the services' robot id (file or $SAFEMIMIC__ROBOT_ID), this session a client too
+    tls = None if site.certs is None else TlsConfig(dir=site.certs)  # this session: the demo identity
     bus_conf = conf.bus.model_copy(update={"mode": BusMode.CLIENT, "connect": [site.router], "listen": [],
-                                          "multicast_scouting": False})
+                                          "multicast_scouting": False, "tls": tls})
     by_name = {child.name: child for child in children}
     with Bus(bus_conf, conf.robot_id, "demo") as bus:
         bus.subscribe("robot/command", watch.on_command)

@@ -21,8 +21,9 @@ from typing import Generic, TypeVar
 import zenoh
 
 from shared.codec import CodecError, decode, encode
-from shared.config import BusConfig, BusMode
+from shared.config import BusConfig, BusMode, ConfigError, TlsConfig, check_secure_bus
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, Message, SafetyStatus
+from shared.tls import tls_files, zenoh_tls
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
@@ -58,8 +59,10 @@ def alive_key(robot_id: str, service: str) -> str:
     return f"{KEY_PREFIX}/{robot_id}/alive/{service}"
 
 
-def zenoh_config(bus: BusConfig) -> zenoh.Config:
-    """A ``zenoh.Config`` from our bus settings: mode, endpoints, scouting, lease, message size."""
+def zenoh_config(bus: BusConfig, identity: str = "") -> zenoh.Config:
+    """A ``zenoh.Config`` from our bus settings: mode, endpoints, scouting, lease, message size, and
+    with ``bus.tls`` mutual TLS as ``identity`` (its certificate; a router also gets its access
+    control). :class:`ConfigError` for unusable settings or files (:mod:`shared.tls`)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(bus.mode.value))
     conf.insert_json5("connect/endpoints", json.dumps(bus.connect))
@@ -70,12 +73,42 @@ def zenoh_config(bus: BusConfig) -> zenoh.Config:
     # A client that lost its router (restarted) retries every 0.2 s, backing off to 0.5 s at most
     # (Zenoh's default backs off to 4 s: a rejoin 2–4 s after the router is back).
     conf.insert_json5("connect/retry", json.dumps(CONNECT_RETRY))
+    if bus.tls is not None:
+        _insert_tls(conf, bus, identity)
     return conf
 
 
-def open_session(bus: BusConfig) -> zenoh.Session:
-    """Open a Zenoh session (use as a context manager)."""
-    return zenoh.open(zenoh_config(bus))
+def _insert_tls(conf: zenoh.Config, bus: BusConfig, identity: str) -> None:
+    """Mutual TLS only (no other link protocol), and at a router its access control file."""
+    check_secure_bus(bus)
+    assert bus.tls is not None
+    router = bus.mode == BusMode.ROUTER
+    files = tls_files(bus.tls, identity, router=router)
+    conf.insert_json5("transport/link/protocols", json.dumps(["tls"]))
+    conf.insert_json5("transport/link/tls", json.dumps(zenoh_tls(files, router)))
+    if router and files.access_control is not None:
+        try:
+            conf.insert_json5("access_control", files.access_control.read_text())
+        except Exception as exc:  # zenoh.ZError: not JSON5, or not Zenoh's access_control schema
+            raise ConfigError(f"bus.tls: {files.access_control} is not a valid Zenoh access_control block: {exc}") from None
+
+
+_warned_open = False
+
+
+def _warn_if_open(bus: BusConfig) -> None:
+    global _warned_open
+    if bus.tls is None and not _warned_open:
+        _warned_open = True
+        log.warning("INSECURE BUS: no TLS and no access control (bus.tls: null / --insecure): anyone who can reach "
+                    "this Zenoh network can command the robot and switch its safety layer off; development only")
+
+
+def open_session(bus: BusConfig, identity: str = "") -> zenoh.Session:
+    """Open a Zenoh session as ``identity`` (use as a context manager); an open bus logs a warning once."""
+    conf = zenoh_config(bus, identity)
+    _warn_if_open(bus)
+    return zenoh.open(conf)
 
 
 #: How long closing a session may take (s): a client whose router goes away at the same moment
@@ -268,7 +301,7 @@ class Bus:
         self.out_of_order: Counter[str] = Counter()
         self.superseded: Counter[str] = Counter()
         self.callback_errors: Counter[str] = Counter()
-        self._session = open_session(bus)
+        self._session = open_session(bus, identity=service)
         self._entities: list[object] = []
 
     # context manager -------------------------------------------------------------------------
@@ -404,6 +437,8 @@ def _topic_type(topic: str) -> type[Message]:
         raise ValueError(f"unknown topic {topic!r}; known: {', '.join(TOPICS)}") from None
 
 
-def router_config(listen: list[str], lease_ms: int = 1000, multicast_scouting: bool = False) -> BusConfig:
+def router_config(listen: list[str], lease_ms: int = 1000, multicast_scouting: bool = False,
+                  tls: TlsConfig | None = None) -> BusConfig:
     """Bus settings of a Zenoh router listening on ``listen`` (zenoh's own router, DESIGN §1)."""
-    return BusConfig(mode=BusMode.ROUTER, listen=listen, multicast_scouting=multicast_scouting, lease_ms=lease_ms)
+    return BusConfig(mode=BusMode.ROUTER, listen=listen, multicast_scouting=multicast_scouting, lease_ms=lease_ms,
+                     tls=tls)

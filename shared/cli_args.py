@@ -1,7 +1,9 @@
 """Command-line flags shared by every service (zenoh-python examples style).
 
-``--config FILE``, ``--mode``, ``--connect``, ``--listen``, ``--no-multicast``, ``--robot-id``;
-the parsed flags become overrides on top of the YAML file and the environment.
+``--config FILE``, ``--mode``, ``--connect``, ``--listen``, ``--no-multicast``, ``--robot-id``,
+``--certs DIR`` (mutual TLS with this service's certificate from DIR: ``bus.tls.dir``) or
+``--insecure`` (``bus.tls: null``, the open development bus); the parsed flags become overrides
+on top of the YAML file and the environment.
 """
 
 from __future__ import annotations
@@ -21,6 +23,11 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--listen", "-l", action="append", metavar="ENDPOINT", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
     group.add_argument("--no-multicast", action="store_true", help="disable Zenoh multicast scouting (use explicit endpoints)")
     group.add_argument("--robot-id", metavar="ID", help="robot id in the key expressions safemimic/{robot_id}/...")
+    security = group.add_mutually_exclusive_group()
+    security.add_argument("--certs", metavar="DIR", help="mutual TLS: DIR holds ca.pem and this service's NAME.pem/NAME.key "
+                          "(safemimic certs); endpoints tls/HOST:PORT, mode client (bus.tls.dir)")
+    security.add_argument("--insecure", action="store_true", help="open tcp bus without authentication or access control "
+                          "(bus.tls: null): anyone on the network can command the robot; development only")
 
 
 def bus_overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -34,6 +41,10 @@ def bus_overrides(args: argparse.Namespace) -> dict[str, Any]:
         bus["listen"] = list(args.listen)
     if args.no_multicast:
         bus["multicast_scouting"] = False
+    if getattr(args, "certs", None):
+        bus["tls"] = {"dir": args.certs}
+    if getattr(args, "insecure", False):
+        bus["tls"] = None
     overrides: dict[str, Any] = {"bus": bus} if bus else {}
     if args.robot_id:
         overrides["robot_id"] = args.robot_id

@@ -47,8 +47,42 @@ class BusMode(str, Enum):
     ROUTER = "router"
 
 
+class TlsConfig(_Section):
+    """Mutual TLS of a Zenoh session (DESIGN §11; the files come from ``safemimic certs``).
+
+    Either ``dir`` (a folder holding ``ca.pem`` and ``IDENTITY.pem`` / ``IDENTITY.key``) or the three
+    files by name. ``identity`` is the certificate's name, by default the session's own service name
+    (``safety``, ``config_api``, ``router``, ...): the router's access control knows a session by
+    its certificate's common name, so a service can only do what its own certificate allows.
+    ``access_control`` (router only) is the JSON5 file of Zenoh's ``access_control`` block
+    (default ``dir/access_control.json5``, written by ``safemimic certs stack``).
+    """
+
+    dir: str | None = Field(default=None, description="folder with ca.pem and IDENTITY.pem/.key")
+    identity: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}$",
+                                 description="certificate name; null: the session's service name")
+    ca: str | None = Field(default=None, description="the deployment CA's certificate (default dir/ca.pem)")
+    certificate: str | None = Field(default=None, description="this session's certificate (default dir/IDENTITY.pem)")
+    private_key: str | None = Field(default=None, description="its private key (default dir/IDENTITY.key)")
+    access_control: str | None = Field(default=None, description="router: access_control JSON5 (default dir/access_control.json5)")
+
+    @model_validator(mode="after")
+    def _files_named(self) -> TlsConfig:
+        if self.dir is None and None in (self.ca, self.certificate, self.private_key):
+            raise ValueError("bus.tls needs dir (holding ca.pem and IDENTITY.pem/.key) or all of ca, "
+                             "certificate and private_key")
+        return self
+
+
 class BusConfig(_Section):
-    """Zenoh session settings (DESIGN §1, §11)."""
+    """Zenoh session settings (DESIGN §1, §11).
+
+    ``tls`` null is the open development bus (plain tcp, no authentication: anyone who reaches it
+    can command the robot; a warning is logged). With ``tls`` set every session authenticates with
+    its own certificate, only ``tls/`` endpoints are allowed, and the mode must be ``client`` or
+    ``router``: access control is enforced at the router, so peer-to-peer sessions, which would
+    bypass it, are refused (:func:`check_secure_bus`).
+    """
 
     mode: BusMode = BusMode.PEER
     connect: list[str] = Field(default_factory=list)
@@ -56,6 +90,27 @@ class BusConfig(_Section):
     multicast_scouting: bool = True
     max_message_bytes: int = Field(default=262144, ge=1024, le=64 * 1024 * 1024)
     lease_ms: int = Field(default=500, ge=100, le=60000)
+    tls: TlsConfig | None = Field(default=None, description="mutual TLS; null: the open tcp bus (development only)")
+
+    @model_validator(mode="after")
+    def _secure_shape(self) -> BusConfig:
+        check_secure_bus(self, error=ValueError)
+        return self
+
+
+def check_secure_bus(bus: BusConfig, error: type[Exception] | None = None) -> None:
+    """With ``bus.tls`` set: mode client or router and ``tls/`` endpoints only; else ``error`` (default
+    :class:`ConfigError`) saying what to change."""
+    if bus.tls is None:
+        return
+    if bus.mode == BusMode.PEER:
+        raise (error or ConfigError)("bus.tls: a secure bus needs mode client (through the router, which enforces access "
+                    "control) or router; peer-to-peer sessions would bypass it (use --mode client, or "
+                    "--insecure for an open development bus)")
+    plain = [endpoint for endpoint in (*bus.connect, *bus.listen) if not endpoint.startswith("tls/")]
+    if plain:
+        raise (error or ConfigError)(f"bus.tls: every endpoint must be tls/HOST:PORT, not {', '.join(plain)} "
+                    "(or --insecure for an open tcp bus)")
 
 
 class RobotConfig(_Section):

@@ -13,17 +13,21 @@ import numpy as np
 import pytest
 import yaml
 
+from safemimic.acl import ROUTER_IDENTITY, access_control, identities
 from safemimic.stack import (
     API_PORT,
     COMPOSE_PATH,
     COMPOSE_SITE,
+    IMAGE_UID,
     PAPER_SCENARIOS,
+    ROUTER_CONFIG_PATH,
     ROUTER_PORT,
     SERVICES,
     Site,
     command,
     compose_text,
     main,
+    router_config_text,
 )
 from services.perception.scenarios import get_scenario
 from shared.bus import Bus
@@ -32,7 +36,8 @@ from shared.skeleton import read_recording
 from tests.conftest import REPO, free_port
 
 DOCKERFILE = REPO / "deploy" / "Dockerfile"
-LOCAL = Site(router="tcp/127.0.0.1:17447", api_store="/tmp/x/config.json", skeleton="/tmp/x/p.npz", api_port=18080)
+LOCAL = Site(router="tls/127.0.0.1:17447", api_store="/tmp/x/config.json", skeleton="/tmp/x/p.npz", api_port=18080,
+             certs="/tmp/x/certs")
 
 
 def _compose() -> dict:
@@ -42,12 +47,47 @@ def _compose() -> dict:
 def _generic(argv: list[str], site: Site) -> list[str]:
     """A command line with the site's own values replaced by their names."""
     values = {site.router: "<router>", site.api_store: "<store>", site.skeleton: "<skeleton>",
-              site.api_host: "<api_host>", str(site.api_port): "<api_port>"}
+              site.api_host: "<api_host>", str(site.api_port): "<api_port>", site.certs: "<certs>"}
     return [values.get(arg, arg) for arg in argv]
 
 
 def test_committed_compose_file_is_what_the_table_generates() -> None:
     assert COMPOSE_PATH.read_text() == compose_text(), "run `python -m safemimic.stack compose` and commit the result"
+    assert ROUTER_CONFIG_PATH.read_text() == router_config_text(), "run `python -m safemimic.stack compose` and commit"
+
+
+def test_compose_router_is_secure_with_the_generated_access_control() -> None:
+    """zenohd listens on tls only, with mutual TLS, the services' lease and the table's access control."""
+    text = ROUTER_CONFIG_PATH.read_text()
+    conf = json.loads(text[text.index("{"):])  # after the two comment lines
+    assert conf["listen"]["endpoints"] == [f"tls/0.0.0.0:{ROUTER_PORT}"]
+    link = conf["transport"]["link"]
+    assert link["protocols"] == ["tls"] and link["tls"]["enable_mtls"] is True
+    assert link["tx"]["lease"] == 500
+    assert link["tls"]["listen_certificate"] == f"/certs/{ROUTER_IDENTITY}.pem"
+    assert conf["access_control"] == access_control() and conf["access_control"]["default_permission"] == "deny"
+
+
+def test_each_compose_service_mounts_only_its_own_certificates() -> None:
+    compose = _compose()
+    services = compose["services"]
+    certs = services["certs"]
+    names = {ROUTER_IDENTITY, *(identity.name for identity in identities())}
+    assert certs["restart"] == "no" and certs["command"][:4] == ["safemimic", "certs", "stack", "/certs"]
+    assert f"{IMAGE_UID}:{IMAGE_UID}" in certs["command"] and "--split" in certs["command"]
+    assert set(certs["volumes"]) == {"certs-ca:/certs", *(f"certs-{name}:/certs/{name}" for name in names)}
+    assert {f"certs-{name}" for name in names} | {"certs-ca"} <= set(compose["volumes"])
+    for name, service in services.items():
+        if name == "certs":
+            continue
+        identity = ROUTER_IDENTITY if name == "router" else next(s.token for s in SERVICES if s.name == name)
+        mounted = [volume for volume in service["volumes"] if volume.startswith("certs-")]
+        assert mounted == [f"certs-{identity}:/certs:ro"], name  # never the CA key, never another service's key
+        assert service["depends_on"]["certs"]["condition"] == "service_completed_successfully"
+        if name != "router":
+            assert service["environment"]["SAFEMIMIC__BUS__TLS__IDENTITY"] == identity
+            assert service["healthcheck"]["test"][-2:] == ["--certs", "/certs"]
+    assert f"--uid {IMAGE_UID}" in DOCKERFILE.read_text()
 
 
 def test_table_names_the_services_as_they_name_themselves() -> None:
@@ -66,11 +106,12 @@ def test_table_names_the_services_as_they_name_themselves() -> None:
 
 def test_compose_and_local_launcher_run_the_same_command_lines() -> None:
     services = _compose()["services"]
-    assert set(services) == {"router", *(spec.name for spec in SERVICES)}
+    assert set(services) == {"certs", "router", *(spec.name for spec in SERVICES)}
     for spec in SERVICES:
         compose_argv = services[spec.name]["command"]
         assert compose_argv[:2] == ["safemimic", spec.name]
-        assert compose_argv[2:6] == ["--mode", "client", "--connect", f"tcp/router:{ROUTER_PORT}"]
+        assert compose_argv[2:6] == ["--mode", "client", "--connect", f"tls/router:{ROUTER_PORT}"]
+        assert compose_argv[7:9] == ["--certs", "/certs"]
         assert _generic(compose_argv, COMPOSE_SITE) == _generic(command(spec.name, LOCAL), LOCAL)
 
 
@@ -80,10 +121,13 @@ def test_compose_file_has_router_health_checks_restart_policy_config_and_console
     router = services["router"]
     assert router["image"].startswith("eclipse/zenoh:1.")  # the official router, never a home-made broker
     assert f"{ROUTER_PORT}:{ROUTER_PORT}/tcp" in router["ports"]  # hosts elsewhere (an edge box) connect here
-    assert "transport/link/tx/lease:500" in router["command"]
+    assert router["command"] == ["--config", "/etc/zenoh/router.json5"]
+    assert f"./{ROUTER_CONFIG_PATH.name}:/etc/zenoh/router.json5:ro" in router["volumes"]
     pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())
     extras = pyproject["project"]["optional-dependencies"]
     for name, service in services.items():
+        if name == "certs":  # the one-shot service that makes the certificates
+            continue
         assert service["restart"] == "unless-stopped"
         assert service["healthcheck"]["test"][0] in ("CMD", "CMD-SHELL")
         if name == "router":

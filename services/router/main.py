@@ -4,24 +4,29 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import threading
 
 from shared.bus import close_bounded, open_session
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import StackConfig
+from shared.config import ConfigError, StackConfig, deep_merge
 from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.router")
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+DEFAULT_SECURE_LISTEN = "tls/0.0.0.0:7447"
+#: The common name of the router's certificate (``safemimic certs``).
+ROUTER_IDENTITY = "router"
 
 
 
 def main(conf: StackConfig, stop: threading.Event) -> bool:
     """Run zenoh's router until ``stop`` is set; True if the session closed within the timeout."""
-    session = open_session(conf.bus)
+    session = open_session(conf.bus, identity=ROUTER_IDENTITY)
     try:
         endpoints = ", ".join(conf.bus.listen) or "zenoh defaults"
-        print(f"zenoh router {session.zid()} listening on {endpoints}", flush=True)
+        security = "mutual TLS + access control" if conf.bus.tls is not None else "INSECURE: no TLS, no access control"
+        print(f"zenoh router {session.zid()} listening on {endpoints} ({security})", flush=True)
         # Wake up now and then: SIGTERM may be delivered to one of zenoh's threads, and Python runs
         # the handler (which sets ``stop``) only when the main thread wakes; an untimed wait can hang.
         while not stop.wait(0.2):
@@ -36,18 +41,31 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser = parser or argparse.ArgumentParser(prog="safemimic router")
     parser.description = (
         "Run a Zenoh router (zenoh-python in router mode). Services started with "
-        "--mode client --connect tcp/HOST:7447 exchange messages and liveliness through it. "
-        f"Default listen endpoint: {DEFAULT_LISTEN}."
+        "--mode client --connect tls/HOST:7447 --certs DIR exchange messages and liveliness through it. "
+        f"Default listen endpoint: {DEFAULT_SECURE_LISTEN} with --certs (DIR/router.pem, DIR/access_control.json5), "
+        f"{DEFAULT_LISTEN} without."
     )
+    parser.add_argument("--acl", metavar="FILE", help="Zenoh access_control JSON5 (default: CERTS/access_control.json5)")
     add_bus_arguments(parser)
     return parser
 
 
 def run(args: argparse.Namespace) -> int:
     args.mode = "router"
-    args.listen = args.listen or [DEFAULT_LISTEN]
-    conf = config_from_args(args)
+    extra = {"bus": {"tls": {"access_control": args.acl}}} if args.acl else {}
+    try:
+        conf = config_from_args(args, extra)
+        if not args.listen:
+            listen = DEFAULT_SECURE_LISTEN if conf.bus.tls is not None else DEFAULT_LISTEN
+            conf = config_from_args(args, deep_merge(extra, {"bus": {"listen": [listen]}}))
+    except ConfigError as exc:
+        print(exc, file=sys.stderr, flush=True)
+        return 2
     with stop_on_signals() as stop:
-        main(conf, stop)
+        try:
+            main(conf, stop)
+        except ConfigError as exc:  # unusable certificate or access-control file
+            print(exc, file=sys.stderr, flush=True)
+            return 2
     return 0  # a hung close: safemimic.cli leaves without it
 
