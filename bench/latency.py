@@ -1,10 +1,16 @@
 """Benchmark: skeleton published → command published, end to end over loopback (DESIGN §8: p99 ≤ 5 ms).
 
 Real processes, the command lines of :mod:`safemimic.stack`: ``executor``, ``safety`` and
-``perception`` (the paper's two scenarios, 30 fps, in a loop), twice:
+``perception`` (the paper's two scenarios, 30 fps, in a loop), three times:
 
-* ``router``: every service a Zenoh client of ``safemimic router`` (the deployed topology);
-* ``direct``: the same services as peers connected straight to the safety service (no router).
+* ``router_tls``: every service a Zenoh client of ``safemimic router`` over mutual TLS, the router
+  enforcing the access control generated from the service table (the deployed, secure topology;
+  a throwaway CA from ``safemimic certs stack``; the probe has the ``viewer`` certificate);
+* ``router``: the same over plain tcp without access control (``--insecure``);
+* ``direct``: the same services as peers connected straight to the safety service (no router, open).
+
+``tls_cost_p50_ms`` / ``tls_cost_p99_ms`` are ``router_tls`` minus ``router``: what authentication,
+encryption and the access-control checks add per skeleton.
 
 For each skeleton, the first JointCommand computed from it (``human_stamp``/``human_seq`` name the
 HumanState used) gives ``command.stamp − human.stamp``: from the skeleton's publication to the
@@ -25,10 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from safemimic.certs import make_stack
 from safemimic.launch import Child, free_port, launch, stop_all
-from safemimic.stack import Site, client_flags, command, router_command, write_paper_scenarios
+from safemimic.stack import Site, client_flags, command, router_command, router_endpoint, write_paper_scenarios
 from shared.bus import Bus
-from shared.config import BusConfig, load_config
+from shared.config import BusConfig, TlsConfig, load_config
 from shared.messages import HumanState, JointCommand
 
 BUDGET_P99_MS = 5.0
@@ -79,26 +86,33 @@ def _stats(samples: list[float]) -> dict[str, float]:
             "n": int(values.size)}
 
 
-def _free_endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
+def _free_endpoint(secure: bool = False) -> str:
+    return router_endpoint("127.0.0.1", free_port(), secure)
 
 
 def measure(topology: str, seconds: float, run_dir: Path) -> dict[str, Any]:
-    """Start the services in ``topology`` (``router`` or ``direct``), sample ``seconds``, stop them."""
-    endpoint = _free_endpoint()
-    site = Site(router=endpoint, api_store=str(run_dir / "unused.json"), skeleton=str(run_dir / "paper-scenarios.npz"))
+    """Start the services in ``topology`` (``router_tls``, ``router`` or ``direct``), sample
+    ``seconds``, stop them."""
+    secure = topology == "router_tls"
+    endpoint = _free_endpoint(secure)
+    certs = run_dir / "certs"
+    if secure:
+        make_stack(certs, router_hosts=["127.0.0.1"])
+    site = Site(router=endpoint, api_store=str(run_dir / "unused.json"), skeleton=str(run_dir / "paper-scenarios.npz"),
+                certs=str(certs) if secure else None)
     children: list[Child] = []
     try:
-        if topology == "router":
-            children.append(launch("router", router_command(endpoint), run_dir))
-            flags = {name: client_flags(endpoint) for name in SERVICES}
-            probe_conf = BusConfig(mode="client", connect=[endpoint], multicast_scouting=False)
+        if topology in ("router", "router_tls"):
+            children.append(launch(topology, router_command(endpoint, site.certs), run_dir))
+            flags = {name: client_flags(endpoint, site.certs) for name in SERVICES}
+            tls = TlsConfig(dir=str(certs), identity="viewer") if secure else None
+            probe_conf = BusConfig(mode="client", connect=[endpoint], multicast_scouting=False, tls=tls)
         else:  # a full mesh of peers: each listens and connects to the ones started before it
             endpoints = {name: _free_endpoint() for name in SERVICES}
             flags = {}
             for i, name in enumerate(SERVICES):
                 connects = [arg for earlier in SERVICES[:i] for arg in ("--connect", endpoints[earlier])]
-                flags[name] = ["--mode", "peer", "--no-multicast", "--listen", endpoints[name], *connects]
+                flags[name] = ["--mode", "peer", "--no-multicast", "--insecure", "--listen", endpoints[name], *connects]
             probe_conf = BusConfig(mode="peer", connect=list(endpoints.values()), multicast_scouting=False)
         for name in SERVICES:
             children.append(launch(f"{topology}-{name}", command(name, site, flags[name]), run_dir))
@@ -146,9 +160,11 @@ def run(seconds: float = 30.0) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="safemimic-latency-") as tmp:
         run_dir = Path(tmp)
         write_paper_scenarios(run_dir / "paper-scenarios.npz")
+        secure = measure("router_tls", seconds, run_dir)
         routed = measure("router", seconds, run_dir)
         direct = measure("direct", seconds, run_dir)
     p50, p99 = routed["published"]["p50"], routed["published"]["p99"]
+    tls_p50, tls_p99 = secure["published"]["p50"], secure["published"]["p99"]
     return {
         "name": "latency",
         "what": "skeleton published → command published (first command computed from each HumanState; "
@@ -161,8 +177,15 @@ def run(seconds: float = 30.0) -> dict[str, Any]:
         "p99_ms": p99,
         "direct_p50_ms": direct["published"]["p50"],
         "direct_p99_ms": direct["published"]["p99"],
+        # the secure, deployed topology (mutual TLS + access control) and what it costs over plain tcp
+        "tls_p50_ms": tls_p50,
+        "tls_p99_ms": tls_p99,
+        "tls_cost_p50_ms": tls_p50 - p50,
+        "tls_cost_p99_ms": tls_p99 - p99,
+        "tls_human_hop_p50_ms": secure["human_hop"]["p50"],
         "budget_p99": BUDGET_P99_MS,
-        "within_budget": p99 <= BUDGET_P99_MS,
+        "within_budget": max(p99, tls_p99) <= BUDGET_P99_MS,
+        "router_tls": secure,
         "router": routed,
         "direct": direct,
         "seconds_per_topology": seconds,

@@ -52,6 +52,12 @@ def test_demo_runs_for_a_duration_and_writes_the_summary(spawn, tmp_path: Path) 
     assert set(_pids(out)) == set(CHILDREN)
     assert "health (liveliness): router up" in out and "config_api up" in out
     assert "result: OK" in out
+    # secure by default: every session over mutual TLS with a throwaway CA made in the run folder
+    assert re.search(r"^router: tls/127\.0\.0\.1:\d+$", out, re.M), out
+    certs = Path(re.search(r"^certs: (\S+)", out, re.M).group(1))
+    assert {"ca.pem", "router.pem", "safety.key", "access_control.json5"} <= {p.name for p in certs.iterdir()}
+    assert "--connect tls/127.0.0.1:" in out and f"--certs {certs}" in out
+    assert "INSECURE" not in out
     summary = json.loads(summary_path.read_text())
     assert SUMMARY_KEYS <= set(summary) and summary["ok"] is True
     assert summary["commands_published"] > 1500  # 500 Hz for 5 s
@@ -80,6 +86,15 @@ def test_demo_replays_demo_skeleton(spawn, tmp_path: Path) -> None:
     assert ready["source"] == f"replay {clips[0].name}"
 
 
+def test_demo_insecure_runs_the_open_bus_with_a_warning(spawn) -> None:
+    proc = spawn("-m", "safemimic.cli", "demo", "--insecure", "--duration", "2", "--api-port", "0")
+    assert proc.popen.wait(90) == 0, "".join(proc.output)
+    out = "".join(proc.output)
+    assert re.search(r"^router: tcp/127\.0\.0\.1:\d+$", out, re.M) and "WARNING: --insecure" in out
+    assert "certs: " not in out and "--insecure" in out.split("$ safemimic safety", 1)[1].splitlines()[0]
+    assert "result: OK" in out
+
+
 def test_demo_refuses_a_bad_demo_skeleton(spawn, tmp_path: Path) -> None:
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a recording")
@@ -92,7 +107,8 @@ def test_demo_refuses_a_bad_demo_skeleton(spawn, tmp_path: Path) -> None:
 def test_demo_leaves_no_process_behind(spawn, sig: signal.Signals) -> None:
     """Ctrl-C stops every child group cleanly; even a SIGKILLed demo orphans nothing (PDEATHSIG)."""
     proc = spawn("-m", "safemimic.cli", "demo", "--api-port", "0")
-    proc.wait_for(lambda line: re.match(r"\s+1\.0 ", line) is not None, 90)  # the first row: the stack runs
+    # the first status row (t ≈ 1 s; later on a loaded machine): the stack runs
+    proc.wait_for(lambda line: re.match(r"\s+\d+\.\d +(nominal|active|relaxed|hold) ", line) is not None, 90)
     pids = _pids("".join(proc.output))
     assert set(pids) == set(CHILDREN) and not any(p == proc.popen.pid for p in pids.values())
     assert len(_running_in_groups(set(pids.values()))) >= len(CHILDREN)

@@ -2,7 +2,9 @@
 
 Hosts: ``router`` (``safemimic router`` + the config API + a bus probe), ``perception`` (an edge
 box: a fresh venv with only ``pip install .[perception]``), ``safety`` and ``executor``; every
-service runs the command line of :mod:`safemimic.stack` as a Zenoh client of the router. The test
+service runs the command line of :mod:`safemimic.stack` as a Zenoh client of the router, over
+mutual TLS: each host gets only its own folder of ``safemimic certs stack --split`` (the CA
+certificate and its identity's pair; the router's folder also holds the access control). The test
 shows the pipeline working across hosts, then unplugs the perception host's cable at the switch:
 the safety service must report the human source lost (``SafetyStatus.human_stale``) within 1 s,
 through liveliness, and keep publishing finite, safe commands; plugging it back resumes imitation.
@@ -17,11 +19,12 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pytest
 
+from safemimic.certs import make_stack
 from safemimic.launch import python_argv
 from safemimic.stack import API_PORT, ROUTER_PORT, Site, command, router_command, write_paper_scenarios
 from tests.conftest import REPO, Proc
@@ -164,17 +167,26 @@ def test_edge_install_is_light(edge_venv: Path, tmp_path: Path) -> None:
 
 
 def test_pipeline_across_hosts_survives_a_cut_perception_link(lan: Lan, edge_venv: Path, tmp_path: Path) -> None:
-    router = f"tcp/{lan.address('router')}:{ROUTER_PORT}"
+    router = f"tls/{lan.address('router')}:{ROUTER_PORT}"
+    certs = tmp_path / "certs"  # made once; each host below gets only its own folder
+    make_stack(certs, router_hosts=[lan.address("router")], do_split=True)
     skeleton = write_paper_scenarios(tmp_path / "paper-scenarios.npz")
     site = Site(router=router, api_store=str(tmp_path / "api" / "config.json"), skeleton=str(skeleton),
                 api_host=lan.address("router"), api_port=API_PORT)
-    lan.run("router", router_command(f"tcp/0.0.0.0:{ROUTER_PORT}")).wait_for(lambda line: "listening" in line, 30)
-    probe = Probe(lan.run("router", [sys.executable, "-m", "tests.multihost_probe", "--mode", "client", "--connect", router, "--no-multicast"]))
-    lan.run("router", command("config-api", site), env={"SAFEMIMIC_API_TOKEN": API_TOKEN})
-    lan.run("executor", command("executor", site))
+
+    def own(identity: str) -> Site:
+        return replace(site, certs=str(certs / identity))
+
+    started = lan.run("router", router_command(f"tls/0.0.0.0:{ROUTER_PORT}", str(certs / "router")))
+    assert "mutual TLS + access control" in started.wait_for(lambda line: "listening" in line, 30)
+    probe = Probe(lan.run("router", [sys.executable, "-m", "tests.multihost_probe", "--mode", "client", "--connect", router,
+                                     "--no-multicast", "--certs", str(certs / "viewer")],
+                          env={"SAFEMIMIC__BUS__TLS__IDENTITY": "viewer"}))  # an observer's certificate
+    lan.run("router", command("config-api", own("config_api")), env={"SAFEMIMIC_API_TOKEN": API_TOKEN})
+    lan.run("executor", command("executor", own("executor")))
     # a human timeout far beyond the test: only the liveliness token can make the human stale here
-    lan.run("safety", command("safety", site), env={"SAFEMIMIC__SAFETY__HUMAN_TIMEOUT_S": "30"})
-    edge = command("perception", site)
+    lan.run("safety", command("safety", own("safety")), env={"SAFEMIMIC__SAFETY__HUMAN_TIMEOUT_S": "30"})
+    edge = command("perception", own("perception"))
     lan.run("perception", [str(edge_venv / "bin" / "safemimic"), *edge[1:]])
 
     services = {"executor", "safety", "perception", "config_api"}

@@ -2,8 +2,9 @@
 
 Stack checks run the simulated stack the way ``safemimic demo`` does (:mod:`safemimic.stack`'s
 command lines, :mod:`safemimic.launch`'s children: router, executor, safety, perception looping
-the paper's scenarios, config API, all Zenoh clients of the router on loopback) while this
-process records the bus as one more client:
+the paper's scenarios, config API, all Zenoh clients of the router on loopback, over mutual TLS
+with the router's access control, certificates from a throwaway CA) while this process records
+the bus as one more client (the ``viewer`` certificate: it can only look):
 
 - ``kill9_<service>``: SIGKILL the service's process group, leave it down :data:`OUTAGE_S` (the
   others' processes must live on and their topics keep flowing; with perception down the safety
@@ -51,12 +52,13 @@ import httpx
 import numpy as np
 
 from bench.reliability import CheckResult
+from safemimic.certs import make_stack
 from safemimic.launch import Child, free_port, kill, launch, stop_all
 from safemimic.stack import SERVICE_BY_NAME, SERVICES, Site, command, router_command, write_paper_scenarios
 from services.config_api.store import ConfigStore, stale_temporaries
 from services.config_api.token import TOKEN_ENV
 from shared.bus import Bus
-from shared.config import BusMode, StackConfig, load_config
+from shared.config import BusMode, StackConfig, TlsConfig, load_config
 from shared.messages import JointCommand, SafetyStatus
 
 #: A restarted service must be back (token and data) this long after its restart command (s).
@@ -152,7 +154,7 @@ class _CommandLimits:
 class Recorder:
     """Every command, joint state, human state, status and liveliness change on the bus, timed."""
 
-    def __init__(self, conf: StackConfig, router: str) -> None:
+    def __init__(self, conf: StackConfig, router: str, certs: Path) -> None:
         safety = conf.safety
         dt = 1.0 / safety.rate_hz
         u_max = np.asarray(safety.u_max, dtype=np.float64)
@@ -164,7 +166,8 @@ class Recorder:
         self.alive: dict[str, bool] = {}
         self.alive_events: list[tuple[float, str, bool]] = []
         bus_conf = conf.bus.model_copy(update={"mode": BusMode.CLIENT, "connect": [router], "listen": [],
-                                              "multicast_scouting": False})
+                                              "multicast_scouting": False,
+                                              "tls": TlsConfig(dir=str(certs), identity="viewer")})
         self.bus = Bus(bus_conf, conf.robot_id, "faults")
         for topic in WATCHED_TOPICS:
             self.bus.subscribe(topic, self._on(topic))
@@ -265,12 +268,14 @@ class Stack:
     def __init__(self, run_dir: Path) -> None:
         self.run_dir = run_dir
         self.router_port = free_port()
-        self.router = f"tcp/127.0.0.1:{self.router_port}"
+        self.router = f"tls/127.0.0.1:{self.router_port}"
+        self.certs = run_dir / "certs"
+        make_stack(self.certs, router_hosts=["127.0.0.1"])
         self.api_port = free_port()
         self.api_token = secrets.token_urlsafe(24)
         site = Site(router=self.router, api_store=str(run_dir / "config.json"), skeleton=str(write_paper_scenarios(run_dir / "person.npz")),
-                    api_port=self.api_port)
-        self.argv: dict[str, list[str]] = {"router": router_command(self.router)}
+                    api_port=self.api_port, certs=str(self.certs))
+        self.argv: dict[str, list[str]] = {"router": router_command(self.router, site.certs)}
         self.argv.update({spec.name: command(spec.name, site) for spec in SERVICES})
         self.children: dict[str, Child] = {}
         self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.api_port}", timeout=2.0)
@@ -314,7 +319,7 @@ def running_stack(conf: StackConfig) -> Iterator[tuple[Stack, Recorder]]:
         stack.start("router")
         if _wait_until(lambda: _port_open(stack.router_port), 10.0) is None:
             raise StackStartError(f"the router did not start:\n{stack.children['router'].log_tail()}")
-        recorder = Recorder(conf, stack.router)
+        recorder = Recorder(conf, stack.router, stack.certs)
         for spec in SERVICES:
             stack.start(spec.name)
         started = time.monotonic()

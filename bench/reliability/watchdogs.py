@@ -2,7 +2,8 @@
 
 The executor (MuJoCo), the safety service (500 Hz) and perception (a scripted person beside the
 robot, looping) run in threads, each with its own Zenoh session, as clients of a router session
-that also records every ``robot/command``, ``robot/joint_state`` and ``safety/status``. Then, in
+(mutual TLS, each session with its own service's certificate from a throwaway CA, the router
+enforcing the access control generated from the service table) that also records every ``robot/command``, ``robot/joint_state`` and ``safety/status``. Then, in
 turn: configuration changes (gain, γ/φ, the control rate 500 → 250 → 500 Hz, the 72-row pair
 preset, mirrored retargeting), a calibration (θ_home from the person's current pose, published as
 the config API does), and perception, the executor and the safety service each stopped for a while
@@ -22,22 +23,25 @@ and restarted. Checks:
 
 from __future__ import annotations
 
+import tempfile
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench.reliability import CheckResult
+from safemimic.certs import make_stack
 from safemimic.launch import free_port
 from services.executor.service import ExecutorService
 from services.perception.service import PerceptionService
 from services.perception.sources import open_source
 from services.safety.service import SafetyService
 from shared.bus import Bus, router_config
-from shared.config import StackConfig, load_config
+from shared.config import StackConfig, TlsConfig, load_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyStatus
 
 STARTUP_TIMEOUT_S = 60.0
@@ -95,11 +99,12 @@ class Running:
         self.service.close()
 
 
-def stack_config(endpoint: str, robot_id: str) -> StackConfig:
-    """Defaults, every service a client of the router at ``endpoint``, the person beside the robot."""
+def stack_config(endpoint: str, robot_id: str, certs: Path) -> StackConfig:
+    """Defaults, every service a client of the router at ``endpoint`` with its own certificate from
+    ``certs``, the person beside the robot."""
     return load_config(environ={}, overrides={
         "robot_id": robot_id,
-        "bus": {"mode": "client", "connect": [endpoint], "multicast_scouting": False},
+        "bus": {"mode": "client", "connect": [endpoint], "multicast_scouting": False, "tls": {"dir": str(certs)}},
         "perception": {"source": "scenario", "scenario": "side-by-side-arm-raise", "loop": True},
     })
 
@@ -131,12 +136,17 @@ def run(quick: bool = False) -> list[CheckResult]:
     """Drive the stack through changes, calibration and restarts; the four checks above."""
     pause = 0.6 if quick else 1.5
     port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"tls/127.0.0.1:{port}"
     robot_id = f"rel{port}"
-    conf = stack_config(endpoint, robot_id)
+    certs_dir = tempfile.TemporaryDirectory(prefix="safemimic-watchdogs-certs-")  # removed when run() returns
+    certs = Path(certs_dir.name)
+    make_stack(certs, router_hosts=["127.0.0.1"])
+    conf = stack_config(endpoint, robot_id, certs)
     recorder = Recorder()
     marks: dict[str, float] = {}
-    with Bus(router_config([endpoint]), robot_id, "reliability") as hub:
+    # the hub is the router itself: its own session (which publishes the config changes, as the
+    # config API would) is local to the router; every service reaches it through the access control
+    with Bus(router_config([endpoint], tls=TlsConfig(dir=str(certs))), robot_id, "router") as hub:
         hub.subscribe("robot/command", recorder.sink(recorder.commands))
         hub.subscribe("robot/joint_state", recorder.sink(recorder.states))
         hub.subscribe("safety/status", recorder.sink(recorder.statuses))
