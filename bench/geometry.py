@@ -42,12 +42,13 @@ import numpy as np
 
 from bench.common import RESULTS_DIR, machine
 from bench.safety_step import DT, WARMUP, FilterRunner, make_filter, interleave, q_nom_trajectory, summarize
-from services.evaluate.episode import HumanTrack, open_input, perceive
+from safemimic.evaluate.person import HumanTrack, perceive
+from safemimic.evaluate.source import open_input
 from services.safety.assembly import build_pipeline, make_geometry
 from services.safety.filter import VIOLATION_TOL
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import preset_pair_set
-from services.safety.service import external_capsules
+from services.safety.human_memory import external_capsules
 from shared.config import GeometryName, StackConfig, load_config
 from shared.messages import SafetyMode
 from shared.realtime import realtime

@@ -36,7 +36,7 @@ from services.safety.geometry.boxes import BoxBarrier  # noqa: E402
 from services.safety.geometry.spheres import SphereBarrier  # noqa: E402
 from services.safety.kinematics import RobotKinematics  # noqa: E402
 from services.safety.pairs import N_ROBOT  # noqa: E402
-from services.safety.service import external_capsules  # noqa: E402
+from services.safety.human_memory import external_capsules  # noqa: E402
 from shared.config import StackConfig, load_config  # noqa: E402
 from shared.robot_spec import configured_robot_spec  # noqa: E402
 

@@ -24,7 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "record-scenario": ("services.perception.record", "write a scripted synthetic scenario (known angles) as a .npz skeleton recording"),
     "config-api": ("services.config_api.main", "serve the config API and web console: validated, persisted, published parameter changes"),
     "executor": ("services.executor.service", "run the robot executor: MuJoCo simulation (or hardware) following JointCommand, publishing JointState"),
-    "evaluate": ("services.evaluate.main", "offline evaluation: an input run with and without the CBF layer in MuJoCo → metrics.json + figures"),
+    "evaluate": ("safemimic.evaluate.main", "offline evaluation against the true person (camera latency, noise): with and without the CBF layer in MuJoCo → metrics.json + figures; --suite for a folder"),
     "bench": ("bench.run", "run the benchmarks, print a table and write JSON under bench/results/"),
     "reliability": ("bench.reliability.run", "run the reliability checks (watchdogs, rate limits, faults, fuzz, load) → bench/results/reliability.json"),
     "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.evaluate.main import evaluate, evaluation_config
-from services.evaluate.metrics import RUN_KEYS, TIMING_KEYS, deterministic_part
+from safemimic.evaluate.evaluation import evaluate, evaluation_config
+from safemimic.evaluate.metrics import RUN_KEYS, TIMING_KEYS, deterministic_part
 from services.perception.placement import Placement
 from services.perception.scenarios import get_scenario, scenario_recording
 from shared.names import KEYPOINT_NAMES
@@ -35,7 +35,7 @@ def robot_model(which: str) -> str | None:
 @pytest.mark.parametrize("scenario", SCENARIOS)
 def test_paper_scenarios_violate_without_and_are_safe_with_the_cbf(scenario: str, model: str) -> None:
     conf = evaluation_config(None, scenario, "side-by-side", robot_model(model))
-    metrics = evaluate(conf, show_progress=False).metrics()
+    metrics = evaluate(conf).metrics()
     cbf, nominal = metrics["cbf"], metrics["nominal"]
     assert tuple(cbf) == RUN_KEYS and tuple(nominal) == RUN_KEYS
     # without the CBF layer the robot violates: a barrier below zero and MuJoCo contacts
@@ -64,7 +64,7 @@ def test_same_input_gives_identical_metrics_and_the_figures(tmp_path: Path) -> N
     for name in ("a", "b"):
         done = run_cli("--scenario", "cross-arm-reach", "--seconds", "4", "--out", str(tmp_path / name))
         assert done.returncode == 0, done.stderr
-        assert "min_h_self" in done.stdout and "evaluate with CBF" in done.stderr  # table and progress
+        assert "min_h_self" in done.stdout and "evaluate (with and without CBF)" in done.stderr  # table and progress
         texts.append((tmp_path / name / "metrics.json").read_text())
     first, second = (json.loads(text) for text in texts)
     assert set(first) == {"cbf", "nominal", "input"}
@@ -95,7 +95,7 @@ def test_recording_with_shuffled_keys_and_an_extra_key_evaluates(tmp_path: Path)
     np.savez(shuffled, xyz=recording.xyz[:, order], camera_serial=np.array("ZED-12345"), fps=np.float64(recording.fps),
              conf=recording.conf[:, order], t=recording.t, names=np.array(KEYPOINT_NAMES)[order])
     results = [
-        deterministic_part(evaluate(evaluation_config(str(path), None, "recorded", None), show_progress=False).metrics())
+        deterministic_part(evaluate(evaluation_config(str(path), None, "recorded", None)).metrics())
         for path in (canonical, shuffled)
     ]
     assert results[0]["input"].pop("source") == "replay canonical.npz"
@@ -110,7 +110,7 @@ def test_real_motion_capture_with_walking_and_turning_evaluates() -> None:
         print(f"skipping: motion capture clip not found at {clip}")
         pytest.skip(f"motion capture clip not found at {clip}")
     conf = evaluation_config(str(clip), None, "facing", None)
-    metrics = evaluate(conf, seconds=4.0, show_progress=False).metrics()
+    metrics = evaluate(conf, seconds=4.0).metrics()
     assert metrics["input"]["control_steps"] == 2000
     for run in ("cbf", "nominal"):
         assert metrics[run]["nan_count"] == 0
@@ -122,3 +122,37 @@ def test_unusable_input_exits_2_with_the_reason(tmp_path: Path) -> None:
     assert done.returncode == 2 and "missing.npz" in done.stderr
     done = run_cli("--scenario", "cross-arm-reach", "--seconds", "-1", "--out", str(tmp_path / "out"))
     assert done.returncode == 2 and "seconds" in done.stderr
+
+
+def test_suite_over_the_development_clips_writes_one_row_per_clip_and_placement(tmp_path: Path) -> None:
+    """``--suite``: every clip × placement evaluated in 2 processes, a folder each, the summary in
+    JSON, Markdown and PNG; a bad file is reported in its row while the others run (exit 1)."""
+    clips = sorted(MOCAP_DIR.glob("*.npz"))
+    if not clips:
+        pytest.skip(f"motion capture clips not found in {MOCAP_DIR}")
+    suite = tmp_path / "clips"
+    suite.mkdir()
+    for clip in clips:
+        (suite / clip.name).symlink_to(clip)
+    (suite / "broken.npz").write_bytes(b"not a zip file")
+    out = tmp_path / "out"
+    done = run_cli("--suite", str(suite), "--seconds", "1.5", "--jobs", "2", "--out", str(out))
+    assert done.returncode == 1, done.stderr  # one run failed, the rest were evaluated
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["latency_ms"] == 60.0 and summary["settings"]["placements"] == ["side-by-side", "facing"]
+    rows = {(r["clip"], r["placement"]): r for r in summary["runs"]}
+    expected = {(c.stem, p) for c in [*clips, suite / "broken.npz"] for p in ("side-by-side", "facing")}
+    assert set(rows) == expected and len(summary["runs"]) == len(expected)
+    assert "broken.npz" in rows[("broken", "facing")]["error"]
+    for clip in clips:
+        for placement in ("side-by-side", "facing"):
+            row = rows[(clip.stem, placement)]
+            assert tuple(row["cbf"]) == RUN_KEYS and row["cbf"]["nan_count"] == 0
+            folder = out / f"{clip.stem}-{placement}"
+            assert json.loads((folder / "metrics.json").read_text())["cbf"] == row["cbf"]
+            assert (folder / "snapshot.png").is_file()
+    table = (out / "summary.md").read_text()
+    assert sum(line.startswith("| bandai") for line in table.splitlines()) == 2 * len(clips)
+    assert "**failed:**" in table and "robot-caused" in table
+    assert (out / "summary.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "broken" in done.stderr and f"{2 * len(clips)} run folders" in done.stdout

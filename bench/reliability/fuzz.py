@@ -29,7 +29,7 @@ Everything runs the real code, in this process, with no mocks:
     scripted people (:mod:`services.perception.scenarios`) whose keypoints jump 1 m for fewer frames
     than the point filter takes to re-anchor (``reacquire_frames``: staying longer is a real move),
     vanish (NaN) or come with zero confidence, through perception → retargeting → CBF-QP → MuJoCo in
-    lockstep (:func:`services.evaluate.episode.run_episode`, the services' code): every q_cbf
+    lockstep (:func:`safemimic.evaluate.episode.run_episode`, the services' code): every q_cbf
     finite, every step within u_max·Δt, and never a step in which the robot's own motion took it
     deeper than −1 mm into the *true* person (:func:`robot_deepening`). A person who moves into the
     robot while unseen can end up inside it whatever the robot does (it stops and holds the last
@@ -59,13 +59,19 @@ import numpy as np
 from bench.reliability import CheckResult
 from safemimic.launch import free_port
 from services.config_api.link import BusLink
-from services.evaluate.episode import MODES, EvaluationInput, open_input, perceive, run_episode
+from safemimic.evaluate.episode import MODES, run_episode
+from safemimic.evaluate.evaluation import true_person_of
+from safemimic.evaluate.person import perceive
+from safemimic.evaluate.source import EvaluationInput, open_input
+from services.safety.kinematics import RobotKinematics
+from shared.robot_spec import configured_robot_spec
 from services.executor.service import ExecutorService
 from services.perception.service import PerceptionService
 from services.perception.sources import open_source
 from services.safety.filter import VIOLATION_TOL
 from services.safety.assembly import build_pipeline
-from services.safety.service import SafetyService, external_capsules
+from services.safety.human_memory import external_capsules
+from services.safety.service import SafetyService
 from shared.bus import TOPICS, Bus, topic_key
 from shared.codec import (
     MAX_MESSAGE_BYTES,
@@ -887,9 +893,11 @@ def fuzz_keypoint_glitches(budget: Budget, seed: int) -> CheckResult:
         clean = open_input(conf, budget.seconds)
         frames, glitches = glitched(clean.frames, rng, conf.perception.point_filter.reacquire_frames - 1)
         track = perceive(conf, EvaluationInput(f"{clean.name} glitched", tuple(frames), clean.fps))
-        episode = run_episode(conf, track, clean.seconds, enforce=True)
+        kinematics = RobotKinematics(configured_robot_spec(conf))
+        person = true_person_of(conf, clean, kinematics)
+        episode = run_episode(conf, track, person, enforce=True, kinematics=kinematics)
         truth = perceive(conf, clean)
-        baseline = run_episode(conf, truth, clean.seconds, enforce=True)
+        baseline = run_episode(conf, truth, person, enforce=True, kinematics=kinematics)
         deeper, lowest_true_h = robot_deepening(conf, episode, truth)
         dt = 1.0 / conf.safety.rate_hz
         steps = np.abs(np.diff(episode.q_cbf, axis=0))
@@ -901,7 +909,7 @@ def fuzz_keypoint_glitches(budget: Budget, seed: int) -> CheckResult:
             "rejected_jumps": track.counters.rejected_jumps, "missing_points": track.counters.missing_points,
             "invalid_frames": track.counters.invalid_frames, "finite": finite, "max_step_over_u_max_dt": round(rate_ratio, 4),
             "min_h_human_m": min_h, "min_h_human_without_glitches_m": min_h_clean, "modes": dict(Counter(MODES[i].value for i in episode.mode)),
-            "robot_human_contact_steps": int(episode.contact_steps[:, 1].astype(bool).sum()),
+            "robot_human_contact_steps": int(episode.true_contact.sum()),
             "robot_deepening_steps": deeper, "min_true_h_m": lowest_true_h,
         }
         if not finite:

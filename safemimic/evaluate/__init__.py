@@ -6,10 +6,10 @@ its control rate with the newest human state held in between, and the MuJoCo exe
 q_cbf. Each input is run twice — with the CBF layer and without it (the same integrator with no
 CBF rows, u* = clip(u_ref)) — and the difference is what the safety layer does.
 
-Modules: :mod:`~services.evaluate.episode` (the input and the lockstep loop),
-:mod:`~services.evaluate.metrics` (``metrics.json``), :mod:`~services.evaluate.figures` (joint
-trajectories, barrier values), :mod:`~services.evaluate.snapshot` (MuJoCo offscreen picture of
-the worst moment), :mod:`~services.evaluate.main` (the command).
+Modules: :mod:`~safemimic.evaluate.episode` (the input and the lockstep loop),
+:mod:`~safemimic.evaluate.metrics` (``metrics.json``), :mod:`~safemimic.evaluate.figures` (joint
+trajectories, barrier values), :mod:`~safemimic.evaluate.snapshot` (MuJoCo offscreen picture of
+the worst moment), :mod:`~safemimic.evaluate.main` (the command).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``python -m services.evaluate``: the offline evaluator (same as ``safemimic evaluate``)."""
+"""``python -m safemimic.evaluate``: the offline evaluator (same as ``safemimic evaluate``)."""
 import sys
 
 from safemimic.cli import main

@@ -1,10 +1,12 @@
 """The paper's Fig. 2b/3b for one evaluation: joint trajectories, and every monitored barrier h.
 
-``joints.png``: the 8 imitation joints over time — the retargeted target q_nom, the command
-without the CBF layer and the command with it; where a CBF row binds the background is shaded.
+``joints.png``: the 8 imitation joints over time — the true person's retargeted angles q_true,
+the perceived target q_nom, the command without the CBF layer and the simulated joints with it;
+where a CBF row binds the background is shaded.
 ``barriers.png``: every monitored h over time in the CBF run (thin lines), self pairs above and
 robot–human pairs below, with the minimum over the pairs of both runs, the zero line, the line
-where the capsules touch (h = −φ) and the global minimum of each run marked.
+where the capsules touch (h = −φ) and the global minimum of each run marked; in green the CBF
+run's true minimum (q_sim against the true person, as h = clearance − φ).
 """
 
 from __future__ import annotations
@@ -17,11 +19,13 @@ matplotlib.use("Agg")  # files only, no display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from services.evaluate.episode import Episode  # noqa: E402
+from safemimic.evaluate.episode import Episode  # noqa: E402
+from safemimic.evaluate.person import TruePerson  # noqa: E402
 
 SAFE_COLOR = "tab:blue"
 UNSAFE_COLOR = "tab:red"
 NOMINAL_COLOR = "0.55"
+TRUE_COLOR = "tab:green"
 BINDING_COLOR = "#fff3b0"
 _DPI = 110
 #: Barrier plots show h up to this (m): far pairs would squash the interesting part.
@@ -37,14 +41,16 @@ def _shade_binding(ax, ep: Episode) -> None:
         ax.axvspan(ep.t[start], ep.t[stop - 1] + dt, color=BINDING_COLOR, lw=0, zorder=0)
 
 
-def plot_joints(cbf: Episode, nominal: Episode, joint_names: tuple[str, ...], path: Path, title: str) -> Path:
-    """Write ``joints.png``: q_nom, q without and with the CBF layer for each joint (rad)."""
+def plot_joints(cbf: Episode, nominal: Episode, person: TruePerson, joint_names: tuple[str, ...], path: Path,
+                title: str) -> Path:
+    """Write ``joints.png``: q_true, q_nom, q without and with the CBF layer for each joint (rad)."""
     fig, axes = plt.subplots(4, 2, figsize=(11, 8.5), sharex=True, constrained_layout=True)
     for j, (ax, name) in enumerate(zip(axes.T.flat, joint_names)):
         _shade_binding(ax, cbf)
-        ax.plot(cbf.t, cbf.q_nom[:, j], color=NOMINAL_COLOR, lw=1.0, label="q_nom (retargeted)")
-        ax.plot(nominal.t, nominal.q_cbf[:, j], color=UNSAFE_COLOR, lw=1.3, ls="--", label="without CBF", zorder=3)
-        ax.plot(cbf.t, cbf.q_cbf[:, j], color=SAFE_COLOR, lw=1.5, label="with CBF (q_cbf)")
+        ax.plot(person.t, person.q_true[:, j], color=TRUE_COLOR, lw=1.0, label="q_true (the person, retargeted)")
+        ax.plot(cbf.t, cbf.q_nom[:, j], color=NOMINAL_COLOR, lw=1.0, label="q_nom (perceived)")
+        ax.plot(nominal.t, nominal.q_sim[:, j], color=UNSAFE_COLOR, lw=1.3, ls="--", label="without CBF", zorder=3)
+        ax.plot(cbf.t, cbf.q_sim[:, j], color=SAFE_COLOR, lw=1.5, label="with CBF (simulated)")
         ax.set_title(name.removesuffix("_joint").replace("_", " "), fontsize=9)
         ax.set_ylabel("rad", fontsize=8)
         ax.tick_params(labelsize=8)
@@ -54,7 +60,7 @@ def plot_joints(cbf: Episode, nominal: Episode, joint_names: tuple[str, ...], pa
     handles, labels = axes[0, 0].get_legend_handles_labels()
     handles.append(plt.Rectangle((0, 0), 1, 1, color=BINDING_COLOR))
     labels.append("a CBF constraint binds")
-    fig.legend(handles, labels, loc="outside lower center", ncol=4, fontsize=9)
+    fig.legend(handles, labels, loc="outside lower center", ncol=5, fontsize=9)
     fig.suptitle(f"Joint trajectories, nominal vs safe — {title}", fontsize=11)
     fig.savefig(path, dpi=_DPI)
     plt.close(fig)
@@ -93,6 +99,11 @@ def plot_barriers(cbf: Episode, nominal: Episode, phi: float, path: Path, title:
         unsafe, safe = _envelope(nominal, columns), _envelope(cbf, columns)
         ax.plot(nominal.t, unsafe, color=UNSAFE_COLOR, lw=1.6, ls="--", label="min h without CBF")
         ax.plot(cbf.t, safe, color=SAFE_COLOR, lw=2.0, label="min h with CBF")
+        true_columns = cbf.truth_pairs.is_self if kind == "self pairs" else ~cbf.truth_pairs.is_self
+        true_low = np.where(np.isnan(cbf.true_clearance[:, true_columns]), np.inf, cbf.true_clearance[:, true_columns])
+        true_low = true_low.min(axis=1, initial=np.inf) - phi
+        ax.plot(cbf.t, np.where(np.isfinite(true_low), true_low, np.nan), color=TRUE_COLOR, lw=1.2,
+                label="true min h with CBF (simulated joints, true person)")
         ax.axhline(0.0, color="black", lw=1.0, label="h = 0 (safety boundary)")
         ax.axhline(-phi, color="black", lw=0.8, ls=":", label=f"h = −φ (capsules touch, φ = {1e3 * phi:g} mm)")
         _mark_minimum(ax, nominal, unsafe, columns, UNSAFE_COLOR, "without CBF")

@@ -1,138 +1,101 @@
-"""``safemimic evaluate``: run an input with and without the CBF layer; write metrics and figures.
+"""``safemimic evaluate``: run an input with and without the CBF layer against the true person.
 
     safemimic evaluate --scenario cross-arm-reach --out results/cross
     safemimic evaluate --skeleton clip.npz --placement facing --robot-model g1.xml --out results/clip
+    safemimic evaluate --suite clips/ --placements side-by-side,facing --jobs 2 --out results/suite
 
-Writes into ``--out``: ``metrics.json`` (:mod:`services.evaluate.metrics`), ``contacts.json``
-(per run: which body pairs touched, for how many steps, how deep), ``joints.png`` (the 8 joints,
-nominal vs safe), ``barriers.png`` (every monitored h over time) and ``snapshot.png`` (MuJoCo at
-the worst moment). Prints the two runs side by side. Exit status 0, or 2 for unusable input.
+Writes into ``--out``: ``metrics.json`` (:mod:`safemimic.evaluate.metrics`), ``contacts.json``
+(per run: which body pairs touched, for how many steps, how deep), ``joints.png`` (the 8 joints:
+true, perceived, without and with the CBF), ``barriers.png`` (every monitored h over time) and
+``snapshot.png`` (MuJoCo at the worst moment). With ``--suite``: one such folder per clip and
+placement plus ``summary.json``, ``summary.md`` and ``summary.png`` (:mod:`safemimic.evaluate.suite`).
+Exit status 0, 1 when some run of a suite failed, 2 for unusable input.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import logging
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from services.evaluate.episode import Episode, EvaluationInput, HumanTrack, open_input, perceive, run_episode
-from services.evaluate.metrics import RUN_KEYS, free_steps, input_metrics, run_metrics, write_metrics
-from services.evaluate.progress import ProgressBar
+from safemimic.evaluate.evaluation import evaluate, evaluation_config, write_outputs
+from safemimic.evaluate.metrics import RUN_KEYS
+from safemimic.evaluate.person import DEFAULT_LATENCY_S, CameraModel
+from safemimic.evaluate.progress import ProgressBar
+from services.executor.sim import SimModelError
 from services.perception.scenarios import SCENARIOS
 from services.perception.sources import SourceUnavailable
-from services.safety.kinematics import KinematicsError, RobotKinematics
-from shared.config import ConfigError, StackConfig, load_config
-from services.executor.sim import SimModelError
-from shared.robot_spec import RobotSpecError, configured_robot_spec
+from services.safety.kinematics import KinematicsError
+from shared.config import ConfigError
+from shared.robot_spec import RobotSpecError
 
-log = logging.getLogger("safemimic.evaluate")
-
-
-@dataclass
-class Evaluation:
-    """Both runs of one input, with what they were computed from."""
-
-    conf: StackConfig
-    source: EvaluationInput
-    human: HumanTrack
-    kinematics: RobotKinematics
-    cbf: Episode
-    nominal: Episode
-    placement: str
-
-    def metrics(self) -> dict[str, Any]:
-        """The content of ``metrics.json``."""
-        free = free_steps(self.cbf)
-        return {
-            "cbf": run_metrics(self.cbf, free),
-            "nominal": run_metrics(self.nominal, free),
-            "input": input_metrics(self.conf, self.source, self.human, self.cbf, self.placement),
-        }
-
-
-def evaluation_config(
-    skeleton: str | None, scenario: str | None, placement: str, robot_model: str | None, config: str | None = None
-) -> StackConfig:
-    """The stack configuration for one evaluation: the file (or shipped default) and the environment,
-    with the input, the placement and the robot model of the command line."""
-    perception: dict[str, Any] = {"placement": placement}
-    if skeleton is not None:
-        perception.update(source="replay", recording=str(Path(skeleton).expanduser().resolve()))
-    if scenario is not None:
-        perception.update(source="scenario", scenario=scenario)
-    overrides: dict[str, Any] = {"perception": perception}
-    if robot_model is not None:
-        overrides["robot"] = {"model": str(Path(robot_model).expanduser().resolve())}
-    return load_config(config, overrides=overrides)
-
-
-def evaluate(conf: StackConfig, seconds: float | None = None, show_progress: bool = True) -> Evaluation:
-    """Read the input, perceive it once, run it with and without the CBF layer.
-
-    Raises SourceUnavailable, RobotSpecError, KinematicsError or SimModelError for unusable input.
-    """
-    source = open_input(conf, seconds)
-    human = perceive(conf, source)
-    kinematics = RobotKinematics(configured_robot_spec(conf))
-    runs = {}
-    for enforce in (True, False):
-        label = "with CBF   " if enforce else "without CBF"
-        n_steps = max(1, round(source.seconds * conf.safety.rate_hz))
-        bar = ProgressBar(n_steps, f"evaluate {label}") if show_progress else None
-        runs[enforce] = run_episode(conf, human, source.seconds, enforce, kinematics, bar.update if bar else None)
-        if bar:
-            bar.close()
-    return Evaluation(conf, source, human, kinematics, runs[True], runs[False], conf.perception.placement)
-
-
-def write_outputs(evaluation: Evaluation, out: Path) -> dict[str, Any]:
-    """Write metrics.json, contacts.json and the three figures into ``out``; the metrics."""
-    from services.evaluate.figures import plot_barriers, plot_joints  # matplotlib: only when writing
-    from services.evaluate.snapshot import render_snapshot
-
-    out.mkdir(parents=True, exist_ok=True)
-    metrics = evaluation.metrics()
-    write_metrics(out / "metrics.json", metrics)
-    contacts = {"cbf": evaluation.cbf.tally.summary(), "nominal": evaluation.nominal.tally.summary()}
-    (out / "contacts.json").write_text(json.dumps(contacts, indent=2) + "\n")
-    e = evaluation
-    title = f"{e.source.name}, placement {e.placement}, robot model {metrics['input']['robot_model']}"
-    plot_joints(e.cbf, e.nominal, e.kinematics.joint_names, out / "joints.png", title)
-    plot_barriers(e.cbf, e.nominal, e.conf.safety.phi, out / "barriers.png", title)
-    render_snapshot(e.conf, e.kinematics, e.human, e.cbf, e.nominal, out / "snapshot.png")
-    return metrics
+#: What makes an input unusable (exit 2 for a single run, a failed row in a suite).
+INPUT_ERRORS = (ConfigError, SourceUnavailable, RobotSpecError, KinematicsError, SimModelError, ValueError)
 
 
 def summary_table(metrics: dict[str, Any]) -> str:
-    """The two runs side by side, one metric a line."""
-    lines = [f"{'metric':<22}{'with CBF':>14}{'without CBF':>14}"]
+    """The two runs side by side, one metric a line (the fidelity object flattened)."""
+    lines = [f"{'metric':<30}{'with CBF':>14}{'without CBF':>14}"]
+
+    def cell(value: Any) -> str:
+        return f"{'—' if value is None else f'{value:g}':>14}"
+
     for key in RUN_KEYS:
-        cells = [metrics[run][key] for run in ("cbf", "nominal")]
-        lines.append(f"{key:<22}" + "".join(f"{'—' if v is None else f'{v:g}':>14}" for v in cells))
+        if key == "fidelity":
+            for sub in metrics["cbf"]["fidelity"]:
+                lines.append(f"{'fidelity.' + sub:<30}" + "".join(cell(metrics[r]["fidelity"][sub]) for r in ("cbf", "nominal")))
+        else:
+            lines.append(f"{key:<30}" + "".join(cell(metrics[r][key]) for r in ("cbf", "nominal")))
     return "\n".join(lines)
+
+
+def camera_model(args: argparse.Namespace) -> CameraModel:
+    """The perceived person's corruption from the command line (ValueError out of range)."""
+    return CameraModel(latency_s=args.latency_ms / 1e3, depth_noise_m=args.depth_noise_m, dropout=args.dropout,
+                       seed=args.seed)
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     parser = parser or argparse.ArgumentParser(prog="safemimic evaluate")
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.description = (
-        "Offline evaluation (DESIGN §7): the services' own code (point filter → angles → capsules → "
-        "retargeting → CBF-QP → MuJoCo) in lockstep at the safety rate, without Zenoh, once with the CBF "
-        "layer and once without it (u* = clip(u_ref)); writes metrics.json, contacts.json, joints.png, "
-        "barriers.png and snapshot.png."
+        "Offline evaluation against the true person: the services' own code (point filter → angles → capsules "
+        "→ retargeting → CBF-QP → MuJoCo) in lockstep at the safety rate, without Zenoh, once with the CBF layer "
+        "and once without it (u* = clip(u_ref)).\n\n"
+        "The TRUE person is the recording as recorded (no filter), interpolated to the control rate: MuJoCo's "
+        "person follows it and every true_* metric is measured against it, at the simulated joints, on every "
+        "robot surface. The PERCEIVED person is what the safety layer gets: the same skeleton delayed by "
+        "--latency-ms, optionally noisy (--depth-noise-m, --dropout, --seed), then filtered as the perception "
+        "service does.\n\n"
+        "Writes metrics.json, contacts.json, joints.png, barriers.png and snapshot.png into --out; with --suite "
+        "one such folder per clip and placement plus summary.json, summary.md and summary.png."
     )
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--skeleton", metavar="FILE.npz", help="a skeleton recording (DESIGN §6)")
     source.add_argument("--scenario", choices=list(SCENARIOS), metavar="NAME",
                         help=f"a scripted scenario: {', '.join(SCENARIOS)}")
+    source.add_argument("--suite", metavar="DIR", help="evaluate every .npz recording in DIR at each of --placements")
     parser.add_argument("--placement", default="auto",
                         help="side-by-side | facing | recorded | x,y,yaw (m, m, rad) | auto (a scenario's own; "
                         "a recording: side-by-side); default auto")
+    parser.add_argument("--placements", default="side-by-side,facing", metavar="LIST",
+                        help="with --suite: comma-separated placements (default side-by-side,facing)")
+    parser.add_argument("--jobs", type=int, default=None, metavar="N",
+                        help="with --suite: parallel processes (default: the CPU count)")
     parser.add_argument("--robot-model", metavar="PATH",
                         help="MJCF to use instead of the robot description's (e.g. Menagerie's unitree_g1/g1.xml)")
+    parser.add_argument("--latency-ms", type=float, default=1e3 * DEFAULT_LATENCY_S, metavar="MS",
+                        help="camera latency of the perceived person (default 60: one 30 Hz frame of exposure and "
+                        "readout ≈ 33 ms + pose inference ≈ 20–30 ms on this CPU + transport); 0 without noise "
+                        "gives the stack's perceived inputs with no delay")
+    parser.add_argument("--depth-noise-m", type=float, default=0.0, metavar="SIGMA",
+                        help="Gaussian depth noise per frame along the camera's viewing rays "
+                        "(perception.camera.extrinsics): a common shift of the skeleton (σ) plus a per-keypoint "
+                        "part (σ/2); default 0")
+    parser.add_argument("--dropout", type=float, default=0.0, metavar="P",
+                        help="each keypoint missing in a frame with probability P (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of noise and dropout (default 0)")
     parser.add_argument("--seconds", type=float, metavar="S",
                         help="evaluate this long (default: the whole recording / one period of the scenario; "
                         "longer loops it)")
@@ -144,15 +107,27 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 def run(args: argparse.Namespace) -> int:
     try:
+        camera = camera_model(args)
+    except ValueError as exc:
+        print(f"safemimic evaluate: {exc}", file=sys.stderr)
+        return 2
+    if args.suite is not None:
+        from safemimic.evaluate.suite import run_suite
+
+        return run_suite(args, camera)
+    try:
         conf = evaluation_config(args.skeleton, args.scenario, args.placement, args.robot_model, args.config)
-        evaluation = evaluate(conf, args.seconds, show_progress=not args.quiet)
-    except (ConfigError, SourceUnavailable, RobotSpecError, KinematicsError, SimModelError, ValueError) as exc:
+        bar = None if args.quiet else ProgressBar(1, "evaluate (with and without CBF)")
+        evaluation = evaluate(conf, args.seconds, camera, None if bar is None else bar.update_of)
+        if bar is not None:
+            bar.close()
+    except INPUT_ERRORS as exc:
         print(f"safemimic evaluate: {exc}", file=sys.stderr)
         return 2
     metrics = write_outputs(evaluation, Path(args.out))
     print(f"{evaluation.source.name}: {metrics['input']['seconds']:g} s, "
-          f"{metrics['input']['control_steps']} control steps, robot model {metrics['input']['robot_model']}")
+          f"{metrics['input']['control_steps']} control steps, robot model {metrics['input']['robot_model']}, "
+          f"camera latency {metrics['input']['latency_ms']:g} ms")
     print(summary_table(metrics))
     print(f"wrote {args.out}/metrics.json, contacts.json, joints.png, barriers.png, snapshot.png")
     return 0
-

@@ -20,6 +20,25 @@
   state already inside a barrier) / HOLD;
 - ``nan_count``: non-finite values in q_cbf, u* and the simulated joints (must be 0).
 
+Those are the filter's own view (q_cbf against the perceived person: delayed, filtered, held).
+The world's view (:mod:`safemimic.evaluate.truth`: the simulated joints q_sim against the true
+person, every pair, every robot surface):
+
+- ``true_min_h_self``: the smallest self-pair barrier h = d − r_A − r_B − φ at q_sim (m);
+- ``true_min_clearance_human``: the smallest robot–person capsule surface distance at q_sim
+  (m, no φ; null: the person never had a capsule);
+- ``true_contacts_robot_human``: steps at which some robot surface (collision geoms and
+  visual-only meshes such as the G1's hands) penetrates the true person's capsules;
+- ``true_max_depth_human``: the deepest such penetration (m);
+- ``robot_caused_contact_steps``: contact steps at which the robot moved a touching pair closer
+  faster than 1 mm/s (its own velocity at the contact point along the normal);
+  ``person_caused_contact_steps``: the other contact steps (the person moved into a robot that
+  was still or retreating);
+- ``robot_approach_steps``: steps at which some robot–person pair's true clearance is below φ
+  and the robot closes it faster than 1 mm/s;
+- ``fidelity``: lag, RMS and arm-direction error against the true person
+  (:mod:`safemimic.evaluate.fidelity`).
+
 Values are rounded (lengths and angles to 1e-6, times to 1e-4 ms) so the file is stable and
 readable; everything but the two QP timings is a pure function of the input and configuration.
 """
@@ -32,7 +51,11 @@ from typing import Any
 
 import numpy as np
 
-from services.evaluate.episode import MODES, Episode, EvaluationInput, HumanTrack
+from safemimic.evaluate.episode import MODES, Episode
+from safemimic.evaluate.fidelity import direction_errors, fidelity
+from safemimic.evaluate.person import CameraModel, HumanTrack, TruePerson
+from safemimic.evaluate.source import EvaluationInput
+from safemimic.evaluate.truth import CLOSING_SPEED
 from shared.config import StackConfig
 from shared.messages import SafetyMode
 
@@ -40,6 +63,8 @@ RUN_KEYS: tuple[str, ...] = (
     "min_h_self", "min_h_human", "frames_h_negative", "contacts_robot_robot", "contacts_robot_human",
     "rms_tracking", "rms_tracking_free", "max_joint_speed", "qp_ms_p50", "qp_ms_p99",
     "relaxed_steps", "hold_steps", "nan_count",
+    "true_min_h_self", "true_min_clearance_human", "true_contacts_robot_human", "true_max_depth_human",
+    "robot_caused_contact_steps", "person_caused_contact_steps", "robot_approach_steps", "fidelity",
 )
 #: The wall-clock keys of a run (excluded when two evaluations are compared for determinism).
 TIMING_KEYS: tuple[str, ...] = ("qp_ms_p50", "qp_ms_p99")
@@ -63,8 +88,33 @@ def free_steps(cbf: Episode) -> np.ndarray:
     return ~cbf.binding
 
 
-def run_metrics(ep: Episode, free: np.ndarray) -> dict[str, Any]:
-    """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by ``rms_tracking_free``."""
+def _nanmin(values: np.ndarray) -> float | None:
+    return _length(np.nanmin(values)) if values.size and not np.isnan(values).all() else None
+
+
+def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
+    """The ``true_*`` and contact-cause keys of one run (``phi``: the safety margin φ, m)."""
+    is_self = ep.truth_pairs.is_self
+    human_clearance = ep.true_clearance[:, ~is_self]
+    closing = np.nan_to_num(ep.true_rate[:, ~is_self], nan=0.0) < -CLOSING_SPEED
+    near = np.nan_to_num(human_clearance, nan=np.inf) < phi
+    self_clearance = _nanmin(ep.true_clearance[:, is_self])
+    robot_caused = int(np.count_nonzero(ep.robot_caused))
+    contacts = int(np.count_nonzero(ep.true_contact))
+    return {
+        "true_min_h_self": None if self_clearance is None else _length(self_clearance - phi),
+        "true_min_clearance_human": _nanmin(human_clearance),
+        "true_contacts_robot_human": contacts,
+        "true_max_depth_human": _length(ep.true_depth.max(initial=0.0)),
+        "robot_caused_contact_steps": robot_caused,
+        "person_caused_contact_steps": contacts - robot_caused,
+        "robot_approach_steps": int(np.count_nonzero((near & closing).any(axis=1))),
+    }
+
+
+def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, mirror: bool) -> dict[str, Any]:
+    """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by the ``*_free`` keys;
+    ``person``: the true person; ``phi``: the safety margin (m); ``mirror``: facing the person."""
     is_self = ep.pairs.is_self
     error = ep.q_cbf - ep.q_nom
     negative = np.nan_to_num(ep.h, nan=np.inf) < 0.0
@@ -85,13 +135,17 @@ def run_metrics(ep: Episode, free: np.ndarray) -> dict[str, Any]:
         "relaxed_steps": int(modes[MODES.index(SafetyMode.RELAXED)]),
         "hold_steps": int(modes[MODES.index(SafetyMode.HOLD)]),
         "nan_count": nonfinite,
+        **truth_metrics(ep, phi),
+        "fidelity": fidelity(person.q_true, ep.q_sim, free,
+                             direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
+                             float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0),
     }
     assert tuple(metrics) == RUN_KEYS
     return metrics
 
 
 def input_metrics(
-    conf: StackConfig, source: EvaluationInput, human: HumanTrack, cbf: Episode, placement: str
+    conf: StackConfig, source: EvaluationInput, human: HumanTrack, cbf: Episode, placement: str, camera: CameraModel
 ) -> dict[str, Any]:
     """What was evaluated: source, duration, robot, the safety parameters, perception counters."""
     c = human.counters
@@ -109,10 +163,11 @@ def input_metrics(
         "phi": s.phi,
         "gain": s.gain,
         "human_velocity_term": s.human_velocity_term,
+        **camera.settings(),
         "self_pairs": int(np.count_nonzero(cbf.pairs.is_self)),
         "human_pairs": int(np.count_nonzero(~cbf.pairs.is_self)),
         "free_steps": int(np.count_nonzero(free_steps(cbf))),
-        "home_contacts_excluded": [f"{a}|{b}" for a, b in cbf.home_contacts],
+        "home_contacts_pressed_only": [f"{a}|{b}" for a, b in cbf.home_contacts],
         "perception": {
             "rejected_jumps": c.rejected_jumps,
             "filter_resets": c.filter_resets,

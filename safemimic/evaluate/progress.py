@@ -33,6 +33,11 @@ class ProgressBar:
             self.stream.write(f"{self.label}: {percent} %\n")
             self.stream.flush()
 
+    def update_of(self, done: int, total: int) -> None:
+        """``update(done)`` with the total (re)stated: a caller that learns it as it goes."""
+        self.total = max(1, total)
+        self.update(done)
+
     def close(self) -> None:
         """Finish the line (the bar at 100 %)."""
         self.update(self.total)

@@ -4,7 +4,7 @@ The worst moment is the control step with the smallest h of the run without the 
 the unsafe robot is deepest inside a barrier; if it never goes below 0, the CBF run's smallest h).
 At that step the safe robot (the CBF run's simulated pose) is drawn solid, the unsafe one (the
 run without CBF) as a translucent red ghost wherever it differs, the person's 7 capsules in skin
-colour, and the closest-point segments of the pairs binding in the CBF-QP in yellow (if none
+colour (the perceived, delayed ones translucent blue), and the closest-point segments of the pairs binding in the CBF-QP in yellow (if none
 binds at that step: the three pairs closest to their boundary). Two views: front and top.
 """
 
@@ -19,7 +19,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from services.evaluate.episode import Episode, HumanTrack, make_executor  # noqa: E402
+from safemimic.evaluate.episode import PERCEIVED_PERSON, TRUE_PERSON, Episode, make_executor  # noqa: E402
+from safemimic.evaluate.person import HumanTrack, TruePerson  # noqa: E402
 from services.executor.sim import HUMAN_GEOM_GROUP, SimRobot  # noqa: E402
 from services.safety.kinematics import RobotKinematics  # noqa: E402
 from services.safety.pairs import N_ROBOT  # noqa: E402
@@ -103,8 +104,8 @@ def _add_segments(scene: mujoco.MjvScene, starts: np.ndarray, ends: np.ndarray) 
         scene.ngeom += 1
 
 
-def render_snapshot(conf: StackConfig, kinematics: RobotKinematics, human: HumanTrack, cbf: Episode,
-                    nominal: Episode, path: Path) -> Path:
+def render_snapshot(conf: StackConfig, kinematics: RobotKinematics, human: HumanTrack, person: TruePerson,
+                    cbf: Episode, nominal: Episode, path: Path) -> Path:
     """Render the worst moment of the two runs (front and top views) into ``path`` (PNG)."""
     k = worst_step(cbf, nominal)
     sim = make_executor(conf, kinematics).sim
@@ -117,8 +118,9 @@ def render_snapshot(conf: StackConfig, kinematics: RobotKinematics, human: Human
     model.vis.headlight.ambient[:] = HEADLIGHT_AMBIENT
     model.vis.headlight.diffuse[:] = HEADLIGHT_DIFFUSE
     state = human.states[cbf.human[k]] if cbf.human[k] >= 0 else None
+    sim.set_human(person.capsules[k], person.radii, person.capsule_valid[k], TRUE_PERSON)
     if state is not None:
-        sim.set_human(state.capsules, state.capsule_radii, state.capsule_valid)
+        sim.set_human(state.capsules, state.capsule_radii, state.capsule_valid, PERCEIVED_PERSON)
     sim.data.qpos[:] = cbf.qpos[k]
     mujoco.mj_forward(model, sim.data)
     unsafe = mujoco.MjData(model)
@@ -154,7 +156,7 @@ def render_snapshot(conf: StackConfig, kinematics: RobotKinematics, human: Human
     names = ", ".join(cbf.pairs.names[r] for r in rows) or "none"
     fig.suptitle(
         f"t = {cbf.t[k]:.2f} s — solid: with CBF; red ghost: without CBF (min h {1e3 * np.nanmin(nominal.h[k]):.0f} mm); "
-        f"skin: the person; yellow: closest points of {names}",
+        f"skin: the true person; blue: the perceived one; yellow: closest points of {names}",
         fontsize=9, wrap=True,
     )
     fig.savefig(path, dpi=100)

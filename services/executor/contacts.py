@@ -1,8 +1,8 @@
 """Contacts found in the simulation: one step's report and the tally over a run.
 
 A :class:`ContactReport` lists the body pairs in contact at one physics step, split into
-robot–robot (two robot links that are not adjacent and not already touching at home) and
-robot–human (a robot link and one of the 7 human capsules). Several contact points between
+robot–robot (two robot links that are not adjacent and not already touching at home, or touching
+at home and pressed deeper) and robot–human (a robot surface and one of the 7 human capsules). Several contact points between
 the same two bodies are one :class:`BodyContact` carrying the deepest penetration.
 :class:`ContactTally` accumulates reports over a run (the executor's counters, the evaluator's
 metrics). Lengths in metres.
@@ -14,7 +14,9 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["BodyContact", "ContactReport", "ContactTally"]
+import numpy as np
+
+__all__ = ["BodyContact", "ContactReport", "ContactTally", "SurfaceContact"]
 
 
 @dataclass(frozen=True, order=True)
@@ -30,6 +32,22 @@ class BodyContact:
     def key(self) -> str:
         """``"body_a|body_b"``: a stable name for the pair."""
         return f"{self.body_a}|{self.body_b}"
+
+
+@dataclass(frozen=True)
+class SurfaceContact:
+    """A robot surface geom penetrating a human capsule: ``robot_body`` and ``capsule`` names,
+    ``depth`` (m, > 0), ``point`` (3,) the robot surface's deepest point (world frame, m),
+    ``normal`` (3,) unit, from the person toward the robot, and ``closing_speed`` (m/s) = −nᵀ J_p q̇:
+    the robot's own velocity at ``point`` into the person (positive: the robot moves closer; the
+    person's motion is not in it)."""
+
+    robot_body: str
+    capsule: str
+    depth: float
+    point: np.ndarray
+    normal: np.ndarray
+    closing_speed: float
 
 
 @dataclass(frozen=True)

@@ -71,14 +71,15 @@ class MujocoExecutor(Executor):
 
     The period is split into ``ceil(period / MAX_PHYSICS_STEP_S)`` equal physics steps, so
     simulated time advances exactly one period per tick. ``viewer``: open MuJoCo's passive viewer
-    at :meth:`start` (when a display exists; otherwise a warning and headless).
+    at :meth:`start` (when a display exists; otherwise a warning and headless). ``people``: capsule
+    sets in the scene (:class:`~services.executor.sim.SimRobot`).
     """
 
-    def __init__(self, spec: RobotSpec, gains: PDGains, period: float, viewer: bool = False) -> None:
+    def __init__(self, spec: RobotSpec, gains: PDGains, period: float, viewer: bool = False, people: int = 1) -> None:
         if not period > 0:
             raise ValueError(f"control period must be > 0, got {period}")
         self.substeps = max(1, math.ceil(period / MAX_PHYSICS_STEP_S - 1e-9))
-        self.sim = SimRobot(spec, gains, timestep=period / self.substeps)
+        self.sim = SimRobot(spec, gains, timestep=period / self.substeps, people=people)
         log.info("simulating %s: %d physics steps of %.2f ms per tick; robot-robot pairs touching at home "
                  "(excluded from contacts): %s", spec.model, self.substeps, 1e3 * self.sim.timestep,
                  [f"{a}|{b}" for a, b in self.sim.home_contacts] or "none")

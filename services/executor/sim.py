@@ -16,21 +16,28 @@ as Menagerie's G1 with meshes), edited with ``mujoco.MjSpec`` before compiling:
   it kp (q_ref − q) + kd (q̇_ref − q̇). Every other joint is held at its home angle with
   ``hold_kp``/``hold_kd``. Optional gravity compensation goes through the same servos
   (MuJoCo ``gravcomp`` + ``actuatorgravcomp``), so it respects the torque limits too;
-- **the person**: 7 mocap bodies, one capsule geom each (CAPSULE_NAMES order, contype 2,
-  conaffinity 1: they touch the robot, not each other; geom group 4). Their pose, length and
-  radius follow :meth:`SimRobot.set_human`; the capsule's size is changed in the compiled model
-  together with its bounding sphere and boxes (the geom's and its body's BVH root), without which
-  the broad phase would miss contacts;
+- **the person**: 7 mocap bodies per person (``people``; one capsule geom each, CAPSULE_NAMES
+  order, geom group 4). Their pose, length and radius follow :meth:`SimRobot.set_human`; the
+  capsule's size is changed in the compiled model together with its bounding sphere and boxes
+  (the geom's and its body's BVH root). The person's geoms collide with nothing (contype =
+  conaffinity = 0): a person driven by a recording must not push the simulated robot (a person
+  walking into it would bend its legs into each other, "robot–robot" contacts the robot never
+  made). Robot–human contacts are measured instead (:meth:`SimRobot.surface_contacts`:
+  ``mj_geomDistance`` between every placed human capsule and every *surface* geom of the robot);
 - **adjacent links**: MuJoCo ignores parent–child contacts except when the parent is welded to
   the world, so each static body (the welded base and whatever hangs on it without a joint) gets
   an explicit exclusion with each jointed child;
-- **home contacts**: robot–robot pairs already in contact at the home pose are excluded too and
-  listed in :attr:`SimRobot.home_contacts`.
+- **home contacts**: robot–robot pairs already in contact at the home pose are excluded from the
+  physics and listed in :attr:`SimRobot.home_contacts`; they are still measured
+  (``mj_geomDistance``) and reported as a contact once they press more than
+  :data:`HOME_PRESS_TOLERANCE` deeper than at home.
 
-MuJoCo reports no contact between two bodies that both lack degrees of freedom (DESIGN §10): a
-mocap capsule never touches the welded pelvis in ``mjData.contact``. :meth:`SimRobot.contacts`
-therefore adds ``mj_geomDistance`` between every placed human capsule and every static robot
-collision geom. Units SI: metres, radians, seconds, newton-metres.
+The robot's *surface* (what a person could touch) is every collision geom of the robot plus every
+visual geom that no collision geom of its body duplicates (same shape, size and pose): the real
+G1 model's rubber hands are visual-only meshes, so without them no hand contact would ever be
+counted. Distances to surfaces need no contact forces, and they also cover the DESIGN §10 trap
+(MuJoCo reports no contact between a mocap capsule and the welded, DOF-less pelvis).
+Units SI: metres, radians, seconds, newton-metres.
 """
 
 from __future__ import annotations
@@ -41,27 +48,27 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from services.executor.contacts import BodyContact, ContactReport
+from services.executor.contacts import BodyContact, ContactReport, SurfaceContact
 from shared.config import ExecutorConfig
 from shared.names import CAPSULE_NAMES
 from shared.robot_spec import RobotSpec
 
 __all__ = [
-    "HUMAN_CONAFFINITY",
-    "HUMAN_CONTYPE",
+    "HOME_PRESS_TOLERANCE",
     "HUMAN_GEOM_GROUP",
     "PDGains",
     "SimModelError",
     "SimRobot",
+    "body_contacts",
     "human_body_name",
 ]
 
-#: Contact bits of the human capsules (the robot MJCF's convention: robot geoms are 1/1).
-HUMAN_CONTYPE = 2
-HUMAN_CONAFFINITY = 1
 #: Geom group of the human capsules (robot visuals are group 2, robot collision geoms group 3).
 HUMAN_GEOM_GROUP = 4
-_HUMAN_RGBA = (0.95, 0.7, 0.55, 0.5)
+#: Colours of person 0 (the world's person) and of any further person (e.g. the perceived one).
+_HUMAN_RGBA = ((0.95, 0.7, 0.55, 0.5), (0.3, 0.55, 0.95, 0.25))
+#: A pair touching at home is a contact once it presses this much deeper than at home (m).
+HOME_PRESS_TOLERANCE = 1e-3
 #: Capsule endpoints farther than this from the robot (m) are treated as invalid.
 MAX_HUMAN_COORD = 100.0
 #: Where unused human capsules wait (m): far below the floor, out of every contact.
@@ -98,9 +105,10 @@ class PDGains:
         return self.per_joint.get(joint, default)
 
 
-def human_body_name(capsule: str) -> str:
-    """Name of the mocap body (and of its geom) carrying human capsule ``capsule``."""
-    return f"human_{capsule}"
+def human_body_name(capsule: str, person: int = 0) -> str:
+    """Name of the mocap body (and of its geom) carrying human capsule ``capsule`` of ``person``
+    (``human_<capsule>`` for person 0, ``human<p>_<capsule>`` for person p ≥ 1)."""
+    return f"human_{capsule}" if person == 0 else f"human{person}_{capsule}"
 
 
 # ----------------------------------------------------------------------------- model building
@@ -176,18 +184,20 @@ def _add_servos(mjs: mujoco.MjSpec, base: mujoco.MjsBody, spec: RobotSpec, gains
             body.gravcomp = 1.0
 
 
-def _add_human(mjs: mujoco.MjSpec) -> None:
-    for capsule in CAPSULE_NAMES:
-        body = mjs.worldbody.add_body(name=human_body_name(capsule), mocap=True, pos=_PARK.tolist())
-        body.add_geom(
-            name=human_body_name(capsule),
-            type=mujoco.mjtGeom.mjGEOM_CAPSULE,
-            size=[0.05, 0.1, 0.0],
-            contype=HUMAN_CONTYPE,
-            conaffinity=HUMAN_CONAFFINITY,
-            group=HUMAN_GEOM_GROUP,
-            rgba=list(_HUMAN_RGBA),
-        )
+def _add_human(mjs: mujoco.MjSpec, people: int) -> None:
+    """7 mocap capsule bodies per person; their geoms collide with nothing (measured, not simulated)."""
+    for person in range(people):
+        for capsule in CAPSULE_NAMES:
+            body = mjs.worldbody.add_body(name=human_body_name(capsule, person), mocap=True, pos=_PARK.tolist())
+            body.add_geom(
+                name=human_body_name(capsule, person),
+                type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                size=[0.05, 0.1, 0.0],
+                contype=0,
+                conaffinity=0,
+                group=HUMAN_GEOM_GROUP,
+                rgba=list(_HUMAN_RGBA[min(person, 1)]),
+            )
 
 
 def _home_qpos(model: mujoco.MjModel, spec: RobotSpec) -> np.ndarray:
@@ -204,6 +214,24 @@ def _home_qpos(model: mujoco.MjModel, spec: RobotSpec) -> np.ndarray:
     return qpos
 
 
+def _surface_geoms(model: mujoco.MjModel, robot_geom: np.ndarray, collides: np.ndarray) -> np.ndarray:
+    """Robot geoms a person could touch: every collision geom, and every visual geom that no
+    collision geom of the same body duplicates (same type, mesh, size and pose)."""
+    surface = []
+    for g in np.flatnonzero(robot_geom):
+        if not collides[g]:
+            twins = np.flatnonzero(robot_geom & collides & (model.geom_bodyid == model.geom_bodyid[g]))
+            if any(
+                model.geom_type[c] == model.geom_type[g] and model.geom_dataid[c] == model.geom_dataid[g]
+                and np.allclose(model.geom_size[c], model.geom_size[g]) and np.allclose(model.geom_pos[c], model.geom_pos[g])
+                and np.allclose(model.geom_quat[c], model.geom_quat[g])
+                for c in twins
+            ):
+                continue
+        surface.append(g)
+    return np.array(surface, dtype=np.int64)
+
+
 def _robot_pairs_in_contact(model: mujoco.MjModel, qpos: np.ndarray, robot_body: np.ndarray) -> list[tuple[str, str]]:
     """Robot–robot body pairs in contact at ``qpos`` (names, each pair sorted)."""
     data = mujoco.MjData(model)
@@ -217,6 +245,14 @@ def _robot_pairs_in_contact(model: mujoco.MjModel, qpos: np.ndarray, robot_body:
     return sorted(pairs)
 
 
+def body_contacts(surface: tuple[SurfaceContact, ...]) -> tuple[BodyContact, ...]:
+    """Surface contacts merged per (robot body, capsule), deepest first kept; sorted by names."""
+    deepest: dict[tuple[str, str], float] = {}
+    for c in surface:
+        deepest[(c.robot_body, c.capsule)] = max(deepest.get((c.robot_body, c.capsule), 0.0), c.depth)
+    return tuple(sorted(BodyContact(a, b, depth) for (a, b), depth in deepest.items()))
+
+
 # ----------------------------------------------------------------------------- the simulation
 class SimRobot:
     """The welded robot, its joint servos and the person's capsules in one MuJoCo model.
@@ -225,21 +261,26 @@ class SimRobot:
         spec: the robot description (model file, base body and height, imitation joints, home).
         gains: servo gains of the imitation and held joints.
         timestep: physics step (s); None keeps the model's ``<option timestep>``.
+        people: how many persons' capsule sets the scene holds (the evaluator shows the true and
+            the perceived person; person 0 is the one :meth:`contacts` reports).
 
     Raises:
         SimModelError: the model is missing, does not compile, or lacks a joint/body the spec names.
     """
 
-    def __init__(self, spec: RobotSpec, gains: PDGains, timestep: float | None = None) -> None:
+    def __init__(self, spec: RobotSpec, gains: PDGains, timestep: float | None = None, people: int = 1) -> None:
+        if people < 1:
+            raise SimModelError(f"the scene needs at least one person's capsule set, got people={people}")
         self.spec = spec
         self.gains = gains
+        self.people = people
         mjs = _load_spec(spec)
         missing = [j for j in spec.imitation_joints if mjs.joint(j) is None]
         if missing:
             raise SimModelError(f"robot model {spec.model} lacks the imitation joints {missing}")
         base = _weld_base(mjs, spec)
         _add_servos(mjs, base, spec, gains)
-        _add_human(mjs)
+        _add_human(mjs, people)
         if timestep is not None:
             if not 0 < timestep <= 0.05:
                 raise SimModelError(f"physics timestep {timestep} s is outside (0, 0.05]")
@@ -259,9 +300,7 @@ class SimRobot:
         self.data = mujoco.MjData(model)
         self._index(robot_body)
         self.reset()
-        # static geoms never move: their world positions and bounding radii, once
-        self._static_pos = self.data.geom_xpos[self.static_geoms].copy()
-        self._static_rbound = self.model.geom_rbound[self.static_geoms].copy()
+        self._home_pairs = self._home_geom_pairs()
 
     def _index(self, robot_body: np.ndarray) -> None:
         m = self.model
@@ -283,17 +322,30 @@ class SimRobot:
 
         self._body_names = [m.body(b).name for b in range(m.nbody)]
         collides = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
-        self._role = np.where(robot_body[m.geom_bodyid] & collides, _ROBOT, 0).astype(np.int8)
-        self._human_geom = np.array([m.geom(human_body_name(c)).id for c in CAPSULE_NAMES])
-        human_bodies = [m.body(human_body_name(c)).id for c in CAPSULE_NAMES]
-        self._human_mocap = m.body_mocapid[human_bodies].copy()
-        self._human_bvh = m.body_bvhadr[human_bodies].copy()  # each body's one-node BVH: its geom's box
-        self._role[self._human_geom] = _HUMAN
-        self._capsule_of_geom = {int(g): c for g, c in zip(self._human_geom, CAPSULE_NAMES)}
-        static = (self._role == _ROBOT) & (m.body_weldid[m.geom_bodyid] == 0)
-        #: Robot collision geoms on bodies without degrees of freedom (welded to the world).
-        self.static_geoms = np.flatnonzero(static)
-        self._human_placed = np.zeros(len(CAPSULE_NAMES), dtype=bool)
+        robot_geom = robot_body[m.geom_bodyid]
+        self._role = np.where(robot_geom & collides, _ROBOT, 0).astype(np.int8)
+        #: Robot geoms a person could touch (collision geoms + visual-only surfaces such as hands).
+        self.surface_geoms = _surface_geoms(m, robot_geom, collides)
+        self._human_geom = np.array([[m.geom(human_body_name(c, p)).id for c in CAPSULE_NAMES] for p in range(self.people)])
+        human_bodies = np.array([[m.body(human_body_name(c, p)).id for c in CAPSULE_NAMES] for p in range(self.people)])
+        self._human_mocap = m.body_mocapid[human_bodies]
+        self._human_bvh = m.body_bvhadr[human_bodies]  # each body's one-node BVH: its geom's box
+        self._role[self._human_geom.ravel()] = _HUMAN
+        self._capsule_of_geom = {int(g): c for row in self._human_geom for g, c in zip(row, CAPSULE_NAMES)}
+        self._human_placed = np.zeros((self.people, len(CAPSULE_NAMES)), dtype=bool)
+        self._jacp = np.zeros((3, m.nv))
+
+    def _home_geom_pairs(self) -> list[tuple[tuple[str, str], list[tuple[int, int]], float]]:
+        """Per body pair touching at home: its collision geom pairs and its penetration at home (m)."""
+        m, d = self.model, self.data
+        pairs = []
+        for a, b in self.home_contacts:
+            geoms_a = [int(g) for g in np.flatnonzero((m.geom_bodyid == m.body(a).id) & (self._role == _ROBOT))]
+            geoms_b = [int(g) for g in np.flatnonzero((m.geom_bodyid == m.body(b).id) & (self._role == _ROBOT))]
+            geom_pairs = [(ga, gb) for ga in geoms_a for gb in geoms_b]
+            depth = max((-mujoco.mj_geomDistance(m, d, ga, gb, 0.0, None) for ga, gb in geom_pairs), default=0.0)
+            pairs.append(((a, b), geom_pairs, depth))
+        return pairs
 
     # ------------------------------------------------------------------------- state
     def reset(self) -> None:
@@ -342,10 +394,11 @@ class SimRobot:
         self.data.ctrl[self._act] = target + self._ff * dq
         return target
 
-    def set_human(self, capsules: np.ndarray, radii: np.ndarray, valid: np.ndarray) -> None:
-        """Place the person's capsules: ``capsules[i] = (a_i, b_i)`` in the world/robot frame (m),
+    def set_human(self, capsules: np.ndarray, radii: np.ndarray, valid: np.ndarray, person: int = 0) -> None:
+        """Place ``person``'s capsules: ``capsules[i] = (a_i, b_i)`` in the world/robot frame (m),
         radius ``radii[i]`` (m), used where ``valid[i]``; the others (and any with a non-finite or
-        implausibly far endpoint) are parked far away. Takes effect at the next :meth:`step`."""
+        implausibly far endpoint) are parked far away. Takes effect at once (the person is
+        kinematic: nothing in the physics depends on it)."""
         capsules = np.asarray(capsules, dtype=float)
         radii = np.asarray(radii, dtype=float)
         valid = np.asarray(valid, dtype=bool)
@@ -360,86 +413,110 @@ class SimRobot:
             & np.isfinite(radii)
             & (radii >= 0)
         )
+        if not 0 <= person < self.people:
+            raise ValueError(f"person {person} is not in the scene (people={self.people})")
         for i in range(n):
             if usable[i]:
-                self._place(i, capsules[i, 0], capsules[i, 1], float(radii[i]))
+                self._place(person, i, capsules[i, 0], capsules[i, 1], float(radii[i]))
             else:
-                self._park(i)
-        self._human_placed = usable
+                self._park(person, i)
+        self._human_placed[person] = usable
+        mujoco.mj_kinematics(self.model, self.data)  # the capsules' world poses, for distances now
 
     def clear_human(self) -> None:
-        """Remove the person from the scene (every capsule parked)."""
-        for i in range(len(CAPSULE_NAMES)):
-            self._park(i)
-        self._human_placed = np.zeros(len(CAPSULE_NAMES), dtype=bool)
+        """Remove every person from the scene (every capsule parked)."""
+        for person in range(self.people):
+            for i in range(len(CAPSULE_NAMES)):
+                self._park(person, i)
+        self._human_placed[:] = False
 
-    def _place(self, i: int, a: np.ndarray, b: np.ndarray, radius: float) -> None:
+    def _place(self, person: int, i: int, a: np.ndarray, b: np.ndarray, radius: float) -> None:
         axis = b - a
         length = float(np.linalg.norm(axis))
         quat = np.array([1.0, 0.0, 0.0, 0.0])
         if length > _MIN_SIZE:
             mujoco.mju_quatZ2Vec(quat, axis / length)
-        self._shape(i, max(radius, _MIN_SIZE), max(0.5 * length, _MIN_SIZE))
-        self.data.mocap_pos[self._human_mocap[i]] = 0.5 * (a + b)
-        self.data.mocap_quat[self._human_mocap[i]] = quat
+        self._shape(person, i, max(radius, _MIN_SIZE), max(0.5 * length, _MIN_SIZE))
+        self.data.mocap_pos[self._human_mocap[person, i]] = 0.5 * (a + b)
+        self.data.mocap_quat[self._human_mocap[person, i]] = quat
 
-    def _park(self, i: int) -> None:
-        self._shape(i, _MIN_SIZE, _MIN_SIZE)
-        self.data.mocap_pos[self._human_mocap[i]] = _PARK
-        self.data.mocap_quat[self._human_mocap[i]] = (1.0, 0.0, 0.0, 0.0)
+    def _park(self, person: int, i: int) -> None:
+        self._shape(person, i, _MIN_SIZE, _MIN_SIZE)
+        self.data.mocap_pos[self._human_mocap[person, i]] = _PARK
+        self.data.mocap_quat[self._human_mocap[person, i]] = (1.0, 0.0, 0.0, 0.0)
 
-    def _shape(self, i: int, radius: float, half_length: float) -> None:
-        """Resize human capsule geom i, with the bounding sphere and boxes the collision phases use
-        (the geom's and its body's BVH root: the geom sits at the body origin, unrotated)."""
-        g = self._human_geom[i]
+    def _shape(self, person: int, i: int, radius: float, half_length: float) -> None:
+        """Resize human capsule geom i, with the bounding sphere and boxes the drawing and distance
+        phases use (the geom's and its body's BVH root: the geom sits at the body origin, unrotated)."""
+        g = self._human_geom[person, i]
         box = (0.0, 0.0, 0.0, radius, radius, radius + half_length)
         self.model.geom_size[g, :2] = radius, half_length
         self.model.geom_rbound[g] = radius + half_length
         self.model.geom_aabb[g] = box
-        if self._human_bvh[i] >= 0:
-            self.model.bvh_aabb[self._human_bvh[i]] = box
+        if self._human_bvh[person, i] >= 0:
+            self.model.bvh_aabb[self._human_bvh[person, i]] = box
 
     # ------------------------------------------------------------------------- physics
     def step(self, n: int = 1) -> None:
-        """Advance the physics by ``n`` steps of :attr:`timestep`."""
+        """Advance the physics by ``n`` steps of :attr:`timestep`; positions (geoms, bodies) are then
+        those of the new joint angles, so distances and contacts are taken where the robot is."""
         mujoco.mj_step(self.model, self.data, nstep=n)
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_comPos(self.model, self.data)
 
-    def contacts(self) -> ContactReport:
-        """Body pairs in contact at the last step: MuJoCo's contact list (robot–robot and
-        robot–human) plus ``mj_geomDistance`` between placed human capsules and static robot geoms."""
+    def contacts(self, surface: tuple[SurfaceContact, ...] | None = None) -> ContactReport:
+        """Body pairs in contact after the last step: robot–robot from MuJoCo's contact list (pairs
+        touching at home once they press :data:`HOME_PRESS_TOLERANCE` deeper than at home) and
+        robot–human from ``surface`` (default: :meth:`surface_contacts` of person 0)."""
         m, d = self.model, self.data
         robot_robot: dict[tuple[str, str], float] = {}
-        robot_human: dict[tuple[str, str], float] = {}
         names = self._body_names
         for (g1, g2), dist in zip(d.contact.geom[: d.ncon], d.contact.dist[: d.ncon]):
-            if dist >= 0.0:
-                continue
-            r1, r2 = self._role[g1], self._role[g2]
-            if r1 == _ROBOT and r2 == _ROBOT:
+            if dist < 0.0 and self._role[g1] == _ROBOT and self._role[g2] == _ROBOT:
                 pair = tuple(sorted((names[m.geom_bodyid[g1]], names[m.geom_bodyid[g2]])))
                 robot_robot[pair] = max(robot_robot.get(pair, 0.0), -float(dist))
-            elif {r1, r2} == {_ROBOT, _HUMAN}:
-                robot_g, human_g = (g1, g2) if r1 == _ROBOT else (g2, g1)
-                pair = (names[m.geom_bodyid[robot_g]], self._capsule_of_geom[int(human_g)])
-                robot_human[pair] = max(robot_human.get(pair, 0.0), -float(dist))
-        self._static_contacts(robot_human)
+        for pair, geom_pairs, home_depth in self._home_pairs:
+            depth = max(-mujoco.mj_geomDistance(m, d, ga, gb, 0.0, None) for ga, gb in geom_pairs)
+            if depth > home_depth + HOME_PRESS_TOLERANCE:
+                robot_robot[pair] = depth - home_depth  # pressed beyond the home contact
         return ContactReport(
             robot_robot=tuple(sorted(BodyContact(a, b, depth) for (a, b), depth in robot_robot.items())),
-            robot_human=tuple(sorted(BodyContact(a, b, depth) for (a, b), depth in robot_human.items())),
+            robot_human=body_contacts(self.surface_contacts(0) if surface is None else surface),
         )
 
-    def _static_contacts(self, found: dict[tuple[str, str], float]) -> None:
-        """Add penetrations between placed human capsules and static robot geoms to ``found``."""
-        if not self._human_placed.any() or not len(self.static_geoms):
-            return
+    def surface_contacts(self, person: int = 0) -> tuple[SurfaceContact, ...]:
+        """Every (robot surface geom, placed capsule of ``person``) pair that penetrates, after the
+        last step: ``mj_geomDistance`` (no contact forces), with the robot's own velocity at its
+        deepest point along the normal, −nᵀ J_p q̇ (n from the person toward the robot).
+
+        A bounding-sphere test comes first (``mj_geomDistance`` has no broad phase of its own).
+        """
+        placed = self._human_placed[person]
+        if not placed.any() or not len(self.surface_geoms):
+            return ()
         m, d = self.model, self.data
-        humans = self._human_geom[self._human_placed]
-        # bounding-sphere test first: mj_geomDistance itself has no broad phase
-        gap = np.linalg.norm(d.geom_xpos[humans, None, :] - self._static_pos[None, :, :], axis=2)
-        near = gap <= m.geom_rbound[humans, None] + self._static_rbound[None, :]
+        humans = self._human_geom[person][placed]
+        surface = self.surface_geoms
+        gap = np.linalg.norm(d.geom_xpos[humans, None, :] - d.geom_xpos[None, surface, :], axis=2)
+        near = gap <= m.geom_rbound[humans, None] + m.geom_rbound[None, surface]
+        found = []
+        fromto = np.zeros(6)
         for hi, si in zip(*np.nonzero(near)):
-            h, s = int(humans[hi]), int(self.static_geoms[si])
-            dist = mujoco.mj_geomDistance(m, d, s, h, 0.0, None)
-            if dist < 0.0:
-                pair = (self._body_names[m.geom_bodyid[s]], self._capsule_of_geom[h])
-                found[pair] = max(found.get(pair, 0.0), -dist)
+            h, s = int(humans[hi]), int(surface[si])
+            dist = mujoco.mj_geomDistance(m, d, s, h, 0.0, fromto)
+            if dist >= 0.0:
+                continue
+            point = fromto[:3].copy()
+            toward_person = fromto[3:] - point
+            length = float(np.linalg.norm(toward_person))
+            if length > 1e-9:  # fromto runs from the robot's surface to the person's, signed by dist
+                normal = -toward_person / (length * np.sign(dist))
+            else:  # touching at one point: fall back to the geom centres
+                normal = d.geom_xpos[s] - d.geom_xpos[h]
+                normal = normal / max(float(np.linalg.norm(normal)), 1e-12)
+            body = int(m.geom_bodyid[s])
+            mujoco.mj_jac(m, d, self._jacp, None, point, body)
+            closing = -float(normal @ (self._jacp @ d.qvel))
+            found.append(SurfaceContact(self._body_names[body], self._capsule_of_geom[h], -float(dist), point,
+                                        normal, closing))
+        return tuple(found)

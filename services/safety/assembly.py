@@ -10,10 +10,12 @@ from services.safety.barrier import CapsuleBarrier
 from services.safety.filter import FilterParams, SafetyFilter
 from services.safety.geometry.base import CollisionGeometry
 from services.safety.geometry.spheres import SphereBarrier, nominal_human
+from services.safety.human_memory import external_capsules
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import N_ROBOT, PairSet, preset_pair_set, select_groups
 from services.safety.retarget import Retargeter
 from shared.config import GeometryName, StackConfig
+from shared.messages import HumanState
 from shared.robot_spec import RobotSpec, configured_robot_spec
 
 
@@ -27,6 +29,21 @@ class SafetyPipeline:
     barrier: CollisionGeometry
     filter: SafetyFilter
     retargeter: Retargeter
+
+    def warm_up(self, dt: float, q: np.ndarray | None = None, human: HumanState | None = None, steps: int = 3) -> None:
+        """Throw-away steps from ``q`` (default: the filter's) with ``human``'s capsules, so one-time
+        lazy work (numba's compiled-function cache, a QP solver's first setup: 0.2–0.3 s measured
+        here) and the solver's warm start happen now, not inside a control tick. The filter ends at ``q``."""
+        filt = self.filter
+        q = filt.q_cbf.copy() if q is None else np.array(q, dtype=np.float64)
+        if human is None:
+            self.barrier.set_external(None)
+        else:
+            self.barrier.set_external(*external_capsules(human, self.pairs.n_external, False))
+        filt.reset(q)
+        for _ in range(steps):
+            filt.step(q, dt)
+        filt.reset(q)
 
 
 def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinematics) -> Retargeter:

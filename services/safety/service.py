@@ -60,7 +60,7 @@ import numpy as np
 
 from services.safety.assembly import SafetyPipeline, build_pipeline, make_retargeter
 from services.safety.filter import FilterParams, StepResult
-from services.safety.human_memory import HumanMemory, external_capsules
+from services.safety.human_memory import HumanMemory
 from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
@@ -118,23 +118,6 @@ def needs_new_pipeline(old: StackConfig, new: StackConfig) -> bool:
     return bool(changed - _HOT_SAFETY_FIELDS)
 
 
-def warm_up(pipeline: SafetyPipeline, dt: float, q: np.ndarray | None = None,
-            human: HumanState | None = None, steps: int = 3) -> None:
-    """Throw-away steps from ``q`` (default: the filter's) with ``human``'s capsules, so one-time
-    lazy work (numba's compiled-function cache, a QP solver's first setup: 0.2–0.3 s measured
-    here) and the solver's warm start happen now, not inside a control tick. The filter ends at ``q``."""
-    filt = pipeline.filter
-    q = filt.q_cbf.copy() if q is None else np.array(q, dtype=np.float64)
-    if human is None:
-        pipeline.barrier.set_external(None)
-    else:
-        pipeline.barrier.set_external(*external_capsules(human, pipeline.pairs.n_external, False))
-    filt.reset(q)
-    for _ in range(steps):
-        filt.step(q, dt)
-    filt.reset(q)
-
-
 def _finite_or_none(value: float | None) -> float | None:
     return value if value is not None and math.isfinite(value) else None
 
@@ -162,7 +145,7 @@ class SafetyService(ScheduledService):
     def __init__(self, conf: StackConfig, bus: Bus | None = None) -> None:
         self.conf = conf
         self.pipeline = build_pipeline(conf)
-        warm_up(self.pipeline, self.period)
+        self.pipeline.warm_up(self.period)
         # control state
         self.ticks = 0
         self.schedule = FixedRateSchedule(self.period)
@@ -258,8 +241,7 @@ class SafetyService(ScheduledService):
                 pipeline = build_pipeline(new)
                 # here, off the control thread, near the live operating point
                 human = self.human.get()
-                warm_up(pipeline, 1.0 / new.safety.rate_hz, self._last_q,
-                        human.message if human is not None else None)
+                pipeline.warm_up(1.0 / new.safety.rate_hz, self._last_q, human.message if human is not None else None)
             except Exception as exc:  # a model that does not load, an unknown preset, ...
                 self._rejected["config"] += 1
                 log.warning("rejected config update v%d: cannot build the safety pipeline: %s", update.version, exc)

@@ -1,0 +1,162 @@
+"""The two people of an evaluation: the true person and the perceived one (DESIGN §7).
+
+**True person** (:func:`true_person`): the source's skeleton as recorded, with no point filter,
+interpolated linearly to the control rate (control time t_k = k Δt from the first frame; a
+keypoint is valid at t_k when it is valid in both frames around t_k; after the last frame the
+last one is held). Its capsules (built as perception builds them, radii from ``conf.human``) are
+MuJoCo's person and what every ``true_*`` metric measures against; its angles (the perception's
+estimator) retargeted (same calibration and mirror) give ``q_true``, the imitation's reference.
+
+**Perceived person** (:func:`perceive`): what the safety layer gets. Every frame of the source,
+optionally corrupted by a :class:`CameraModel`, goes through the perception pipeline (point
+filter → angles + capsules) exactly as the perception service does, and becomes available
+``latency_s`` after its capture time:
+
+- depth noise (``depth_noise_m`` = σ, per frame): a common shift of the whole skeleton,
+  δ ~ N(0, σ²) along the camera's viewing ray to the skeleton's centroid, plus a per-keypoint
+  part ε_k ~ N(0, (σ/2)²) along keypoint k's own ray (the camera at
+  ``perception.camera.extrinsics.position``). A monocular or stereo camera is least certain
+  along its rays; most of that error is shared by the whole body (the person's scale/distance);
+- dropout (``dropout`` = P): each keypoint is missing in a frame with probability P;
+- ``seed``: the random stream (numpy's default generator): the same seed, the same corruption.
+
+With ``latency_s = 0`` and no noise the perceived person is the pipeline's plain output.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from safemimic.evaluate.source import EvaluationInput
+from services.perception.angles import PoseEstimator
+from services.perception.capsules import HumanCapsules
+from services.perception.pipeline import PerceptionCounters, PerceptionPipeline
+from services.perception.point_filter import FilteredSkeleton
+from services.perception.stream import SkeletonFrame
+from services.safety.retarget import Retargeter
+from shared.config import StackConfig
+from shared.messages import HumanState
+
+#: Default camera latency (s): one 30 Hz frame of exposure and readout (33 ms) + pose inference
+#: (≈ 20–30 ms on this CPU) + transport.
+DEFAULT_LATENCY_S = 0.060
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """How the perceived person differs from the true one: delay (s), depth noise σ (m), dropout
+    probability, random seed. Raises ValueError for values outside their ranges."""
+
+    latency_s: float = DEFAULT_LATENCY_S
+    depth_noise_m: float = 0.0
+    dropout: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.latency_s <= 2.0:
+            raise ValueError(f"latency must be in [0, 2000] ms, got {1e3 * self.latency_s:g} ms")
+        if not 0.0 <= self.depth_noise_m <= 1.0:
+            raise ValueError(f"depth noise must be in [0, 1] m, got {self.depth_noise_m:g}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {self.dropout:g}")
+
+    def settings(self) -> dict[str, float | int]:
+        """The ``input`` keys of metrics.json."""
+        return {"latency_ms": round(1e3 * self.latency_s, 6), "depth_noise_m": self.depth_noise_m,
+                "dropout": self.dropout, "seed": self.seed}
+
+
+@dataclass(frozen=True)
+class HumanTrack:
+    """The perceived person: the HumanState of every frame and when it became available, ``t``
+    (F,) s from the first frame (capture time + latency); perception's counters."""
+
+    t: np.ndarray
+    states: tuple[HumanState, ...]
+    counters: PerceptionCounters
+
+
+@dataclass(frozen=True)
+class TruePerson:
+    """The true person at every control step k (N steps): ``keypoints`` (N, 15, 3) m and
+    ``valid`` (N, 15); ``capsules`` (N, 7, 2, 3) m, ``capsule_valid`` (N, 7), ``radii`` (7,) m;
+    ``q_true`` (N, 8) rad, the retargeted angles of the true skeleton."""
+
+    t: np.ndarray
+    keypoints: np.ndarray
+    valid: np.ndarray
+    capsules: np.ndarray
+    capsule_valid: np.ndarray
+    radii: np.ndarray
+    q_true: np.ndarray
+
+
+def corrupt(frame: SkeletonFrame, camera_position: np.ndarray, model: CameraModel,
+            rng: np.random.Generator) -> SkeletonFrame:
+    """``frame`` with the depth noise and dropout of ``model`` (module docstring); draws the same
+    number of random values whatever the frame holds, so a seed fixes the whole stream."""
+    common, per_point = rng.normal(0.0, 1.0), rng.normal(0.0, 1.0, len(frame.xyz))
+    dropped = rng.random(len(frame.xyz)) < model.dropout
+    xyz, conf = frame.xyz.copy(), frame.conf.copy()
+    sigma = model.depth_noise_m
+    present = np.isfinite(xyz).all(axis=1)
+    if sigma > 0.0 and present.any():
+        rays = xyz - camera_position
+        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+        centre = xyz[present].mean(axis=0) - camera_position
+        centre /= max(float(np.linalg.norm(centre)), 1e-9)
+        xyz += sigma * common * centre + (0.5 * sigma * per_point)[:, None] * rays
+    xyz[dropped], conf[dropped] = np.nan, 0.0
+    return SkeletonFrame(t=frame.t, xyz=xyz, conf=conf, captured=frame.captured, discontinuity=frame.discontinuity)
+
+
+def perceive(conf: StackConfig, source: EvaluationInput, model: CameraModel = CameraModel(latency_s=0.0)) -> HumanTrack:
+    """Run the perception pipeline over every (corrupted) frame in order; each state becomes
+    available ``model.latency_s`` after its frame (``HumanState.stamp`` = that time)."""
+    pipeline = PerceptionPipeline(conf.perception, conf.human)
+    rng = np.random.default_rng(model.seed)
+    camera = np.asarray(conf.perception.camera.extrinsics.position, dtype=np.float64)
+    noisy = model.depth_noise_m > 0.0 or model.dropout > 0.0
+    t0 = source.frames[0].t
+    states = []
+    for frame in source.frames:
+        seen = corrupt(frame, camera, model, rng) if noisy else frame
+        states.append(pipeline.step(seen).to_message(stamp=frame.t - t0 + model.latency_s))
+    return HumanTrack(t=np.array([s.stamp for s in states]), states=tuple(states), counters=pipeline.counters)
+
+
+def interpolate_skeleton(source: EvaluationInput, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The source's skeleton at times ``t`` (s from the first frame), linear between frames:
+    points (N, 15, 3) m (NaN where invalid) and valid (N, 15). Before the first frame the first
+    is used, after the last the last."""
+    times = np.array([f.t for f in source.frames]) - source.frames[0].t
+    xyz = np.stack([f.xyz for f in source.frames])
+    present = np.isfinite(xyz).all(axis=2) & (np.stack([f.conf for f in source.frames]) > 0.0)
+    upper = np.clip(np.searchsorted(times, t, side="right"), 1, max(1, len(times) - 1))
+    lower = upper - 1 if len(times) > 1 else np.zeros_like(upper)
+    span = times[upper] - times[lower]
+    w = np.clip(np.divide(t - times[lower], span, out=np.zeros_like(t), where=span > 0), 0.0, 1.0)
+    points = (1.0 - w)[:, None, None] * xyz[lower] + w[:, None, None] * xyz[upper]
+    # a neighbour with weight 0 does not matter (the last frame held, an exact frame time)
+    valid = (present[lower] | (w[:, None] == 1.0)) & (present[upper] | (w[:, None] == 0.0))
+    points[~valid] = np.nan
+    return points, valid
+
+
+def true_person(conf: StackConfig, source: EvaluationInput, t: np.ndarray, retargeter: Retargeter) -> TruePerson:
+    """The true person at control times ``t`` (module docstring); ``retargeter`` maps its angles
+    to ``q_true`` (a fresh one per call: it keeps the last valid target)."""
+    points, valid = interpolate_skeleton(source, t)
+    builder = HumanCapsules(conf.human)
+    estimator = PoseEstimator(conf.perception.angles)
+    n = len(t)
+    capsules, capsule_valid, q_true = np.empty((n, 7, 2, 3)), np.empty((n, 7), bool), np.empty((n, 8))
+    unchanged = np.zeros(points.shape[1], bool)
+    for k in range(n):
+        capsules[k], capsule_valid[k], _ = builder(FilteredSkeleton(float(t[k]), points[k], valid[k], unchanged))
+        theta, theta_valid = estimator(np.nan_to_num(points[k]), valid[k])
+        q_true[k] = retargeter(theta, theta_valid)
+    return TruePerson(t=t, keypoints=points, valid=valid, capsules=capsules, capsule_valid=capsule_valid,
+                      radii=builder.radii.copy(), q_true=q_true)

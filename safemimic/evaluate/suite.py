@@ -1,0 +1,222 @@
+"""``safemimic evaluate --suite DIR``: every recording in DIR at every placement, in parallel.
+
+Each (clip, placement) run is one :func:`~safemimic.evaluate.evaluation.evaluate` in a worker
+process (``--jobs``), written to ``OUT/<clip>-<placement>/`` exactly as a single run writes its
+folder; a file that cannot be evaluated is reported in its row and the others still run. Then:
+
+- ``OUT/summary.json``: ``{"settings": {...}, "runs": [{"clip", "placement", "cbf", "nominal",
+  "input"} | {"clip", "placement", "error"}]}``, the run objects as in ``metrics.json``;
+- ``OUT/summary.md``: one row per run (:data:`COLUMNS`);
+- ``OUT/summary.png``: the same at a glance (true contacts with and without the CBF, the robot-
+  caused share, min true clearance, min self h, lag, RMS against the true person).
+
+One progress bar covers every run (workers report their steps through a queue).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import queue
+import sys
+import threading
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+from safemimic.evaluate.person import CameraModel
+from safemimic.evaluate.progress import ProgressBar
+
+#: (header, what it shows) of summary.md's columns after clip and placement.
+COLUMNS: tuple[tuple[str, str], ...] = (
+    ("true contacts CBF / none", "steps with a robot surface inside the true person, with / without the CBF"),
+    ("robot-caused (CBF)", "of the CBF run's contact steps, those in which the robot closed a touching pair > 1 mm/s"),
+    ("min true clearance (mm)", "CBF run: smallest robot–person capsule surface distance at the simulated joints"),
+    ("min self h (mm)", "CBF run: smallest self-pair barrier at the simulated joints (true_min_h_self)"),
+    ("lag (ms)", "CBF run: median delay of the simulated joints behind the true person's retargeted angles"),
+    ("rms true free (rad)", "CBF run: RMS of q_sim − q_true while no constraint binds"),
+)
+_REPORT_EVERY = 50  # control steps between progress messages from a worker
+
+
+def _placements(text: str) -> list[str]:
+    placements = [p.strip() for p in text.split(",") if p.strip()]
+    if not placements:
+        raise ValueError("--placements needs at least one placement")
+    return placements
+
+
+def _run_one(index: int, clip: str, placement: str, args: dict[str, Any], camera: CameraModel, out: str,
+             progress: Any) -> dict[str, Any]:
+    """Worker: evaluate one clip at one placement and write its folder; the summary row."""
+    from safemimic.evaluate.evaluation import evaluate, evaluation_config, write_outputs
+    from safemimic.evaluate.main import INPUT_ERRORS
+
+    row: dict[str, Any] = {"clip": Path(clip).stem, "placement": placement}
+
+    def report(done: int, total: int) -> None:
+        if done % _REPORT_EVERY == 0 or done == total:
+            progress.put((index, done, total))
+
+    try:
+        conf = evaluation_config(clip, None, placement, args["robot_model"], args["config"])
+        evaluation = evaluate(conf, args["seconds"], camera, report)
+        metrics = write_outputs(evaluation, Path(out) / f"{row['clip']}-{placement}")
+    except INPUT_ERRORS as exc:
+        return {**row, "error": str(exc)}
+    return {**row, **{key: metrics[key] for key in ("cbf", "nominal", "input")}}
+
+
+def _mm(value: float | None) -> str:
+    return "—" if value is None else f"{1e3 * value:.1f}"
+
+
+def _num(value: float | None, fmt: str) -> str:
+    return "—" if value is None else format(value, fmt)
+
+
+def summary_markdown(summary: dict[str, Any]) -> str:
+    """summary.md: the settings, a row per run, and what each column means."""
+    s = summary["settings"]
+    lines = [
+        "# Evaluation suite", "",
+        f"{len(summary['runs'])} runs; camera latency {s['latency_ms']:g} ms, depth noise {s['depth_noise_m']:g} m, "
+        f"dropout {s['dropout']:g}, seed {s['seed']}; robot model {s['robot_model'] or 'default'}.", "",
+        "| clip | placement | " + " | ".join(h for h, _ in COLUMNS) + " |",
+        "|---|---|" + "---|" * len(COLUMNS),
+    ]
+    for run in summary["runs"]:
+        if "error" in run:
+            lines.append(f"| {run['clip']} | {run['placement']} | **failed:** {run['error']} |" + " |" * (len(COLUMNS) - 1))
+            continue
+        cbf, nominal = run["cbf"], run["nominal"]
+        cells = [
+            f"{cbf['true_contacts_robot_human']} / {nominal['true_contacts_robot_human']}",
+            str(cbf["robot_caused_contact_steps"]),
+            _mm(cbf["true_min_clearance_human"]),
+            _mm(cbf["true_min_h_self"]),
+            _num(cbf["fidelity"]["lag_ms"], ".0f"),
+            _num(cbf["fidelity"]["rms_true_free"], ".3f"),
+        ]
+        lines.append(f"| {run['clip']} | {run['placement']} | " + " | ".join(cells) + " |")
+    lines += ["", "Columns:", ""] + [f"- **{h}**: {what}" for h, what in COLUMNS]
+    return "\n".join(lines) + "\n"
+
+
+def plot_summary(summary: dict[str, Any], path: Path) -> Path:
+    """summary.png: one panel per quantity, a bar (pair) per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    runs = [r for r in summary["runs"] if "error" not in r]
+    labels = [f"{r['clip']}\n{r['placement']}" for r in runs]
+    x = np.arange(len(runs))
+
+    def values(run_key: str, key: str, scale: float = 1.0, sub: str | None = None) -> np.ndarray:
+        out = []
+        for r in runs:
+            v = r[run_key][key] if sub is None else r[run_key][key][sub]
+            out.append(np.nan if v is None else scale * v)
+        return np.array(out, dtype=float)
+
+    fig, axes = plt.subplots(2, 3, figsize=(max(10, 1.1 * len(runs) + 4), 7.5), constrained_layout=True)
+    ax = axes[0, 0]
+    ax.bar(x - 0.2, values("nominal", "true_contacts_robot_human"), 0.4, color="tab:red", label="without CBF")
+    ax.bar(x + 0.2, values("cbf", "true_contacts_robot_human"), 0.4, color="tab:blue", label="with CBF")
+    ax.bar(x + 0.2, values("cbf", "robot_caused_contact_steps"), 0.4, color="navy", label="with CBF, robot-caused")
+    ax.set_title("contact steps with the true person", fontsize=10)
+    ax.legend(fontsize=7)
+    panels = [
+        (axes[0, 1], values("cbf", "true_min_clearance_human", 1e3), "min true clearance, CBF (mm)", True),
+        (axes[0, 2], values("cbf", "true_min_h_self", 1e3), "min self h at q_sim, CBF (mm)", True),
+        (axes[1, 0], values("cbf", "fidelity", sub="lag_ms"), "lag behind the person, CBF (ms)", False),
+        (axes[1, 1], values("cbf", "fidelity", sub="rms_true_free"), "RMS q_sim − q_true, free steps (rad)", False),
+        (axes[1, 2], values("cbf", "fidelity", sub="direction_error_deg_p95"), "arm direction error p95 (deg)", False),
+    ]
+    for ax, data, title, signed in panels:
+        ax.bar(x, data, 0.6, color=["tab:red" if signed and v < 0 else "tab:blue" for v in np.nan_to_num(data)])
+        if signed:
+            ax.axhline(0.0, color="black", lw=0.8)
+        ax.set_title(title, fontsize=10)
+    for ax in axes.flat:
+        ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
+        ax.grid(alpha=0.3, axis="y")
+    s = summary["settings"]
+    fig.suptitle(f"Evaluation suite: {len(runs)} runs, camera latency {s['latency_ms']:g} ms", fontsize=11)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def run_suite(args: argparse.Namespace, camera: CameraModel) -> int:
+    """The ``--suite`` command: 0 when every run was evaluated, 1 when some failed, 2 for bad arguments."""
+    folder = Path(args.suite).expanduser()
+    clips = sorted(folder.glob("*.npz")) if folder.is_dir() else []
+    try:
+        placements = _placements(args.placements)
+        if args.jobs is not None and args.jobs < 1:
+            raise ValueError(f"--jobs must be ≥ 1, got {args.jobs}")
+        if not clips:
+            raise ValueError(f"{folder}: no .npz recordings found" if folder.is_dir() else f"{folder} is not a folder")
+    except ValueError as exc:
+        print(f"safemimic evaluate: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    tasks = [(str(clip), placement) for clip in clips for placement in placements]
+    options = {"robot_model": args.robot_model, "config": args.config, "seconds": args.seconds}
+    jobs = min(args.jobs or os.cpu_count() or 1, len(tasks))
+    bar = None if args.quiet else ProgressBar(1000, f"evaluate {len(tasks)} runs ({jobs} jobs)")
+    fractions = [0.0] * len(tasks)
+    context = multiprocessing.get_context("spawn")  # clean workers: no forked MuJoCo/numba state
+    with context.Manager() as manager:
+        progress = manager.Queue()
+        done_event = threading.Event()
+
+        def drain() -> None:
+            while not done_event.is_set():
+                try:
+                    index, done, total = progress.get(timeout=0.2)
+                except (queue.Empty, EOFError, OSError):
+                    continue
+                fractions[index] = done / max(total, 1)
+                if bar is not None:
+                    bar.update(round(1000 * sum(fractions) / len(tasks)))
+
+        reader = threading.Thread(target=drain, daemon=True)
+        reader.start()
+        rows: list[dict[str, Any] | None] = [None] * len(tasks)
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+            futures = {pool.submit(_run_one, i, clip, placement, options, camera, str(out), progress): i
+                       for i, (clip, placement) in enumerate(tasks)}
+            for future in as_completed(futures):
+                i = futures[future]
+                try:
+                    rows[i] = future.result()
+                except Exception as exc:  # a worker that died: the row says so, the rest go on
+                    clip, placement = tasks[i]
+                    rows[i] = {"clip": Path(clip).stem, "placement": placement, "error": f"{type(exc).__name__}: {exc}"}
+                fractions[i] = 1.0
+        done_event.set()
+        reader.join(timeout=1.0)
+    if bar is not None:
+        bar.close()
+    summary = {
+        "settings": {**camera.settings(), "seconds": args.seconds, "robot_model": args.robot_model,
+                     "config": args.config, "placements": placements, "clips": [c.name for c in clips], "jobs": jobs},
+        "runs": rows,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    (out / "summary.md").write_text(summary_markdown(summary))
+    plot_summary(summary, out / "summary.png")
+    failed = [r for r in rows if r is not None and "error" in r]
+    print(summary_markdown(summary))
+    for row in failed:
+        print(f"safemimic evaluate: {row['clip']} ({row['placement']}) failed: {row['error']}", file=sys.stderr)
+    print(f"wrote {out}/summary.json, summary.md, summary.png and {len(rows) - len(failed)} run folders")
+    return 1 if failed else 0

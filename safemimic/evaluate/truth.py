@@ -1,0 +1,63 @@
+"""The robot measured against the true person, at its simulated joints (DESIGN §7).
+
+:class:`TruthProbe` evaluates, at every control step, the robot's CBF capsules at the simulated
+joint angles q_sim against the *true* person's capsules, over *every* pair (the robot
+description's self pairs and all 7 × 7 robot–human pairs, whatever the safety configuration
+monitors):
+
+    clearance_i = d_i − (r_A + r_B)            (m, capsule surfaces, no margin φ)
+    rate_i      = (∂d_i/∂q) q̇_sim = nᵀ J_pA q̇_sim   (m/s, the robot's own motion only: the
+                                                      person's capsule has no Jacobian)
+
+with n the unit normal from the person's (or the other link's) closest point toward the robot's
+(:mod:`services.safety.barrier`). A negative rate is the robot closing that pair. The rows come
+from the safety service's own :class:`~services.safety.barrier.CapsuleBarrier` (φ = 0), so the
+geometry is exactly the one the filter protects, now at the robot's real pose and the person's
+real place.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.safety.assembly import robot_radii
+from services.safety.barrier import CapsuleBarrier
+from services.safety.kinematics import RobotKinematics
+from services.safety.pairs import PairSet, make_pair_set
+from shared.config import StackConfig
+
+#: A pair closes "faster than" this (m/s) when its clearance shrinks by the robot's motion.
+CLOSING_SPEED = 1e-3
+
+
+@dataclass(frozen=True)
+class StepTruth:
+    """One step: ``clearance`` and ``rate`` (m,) per pair of :attr:`TruthProbe.pairs` (NaN where
+    the person's capsule is missing), the robot capsules at q_sim ``robot`` (7, 2, 3) m."""
+
+    clearance: np.ndarray
+    rate: np.ndarray
+    robot: np.ndarray
+
+
+class TruthProbe:
+    """Every pair's clearance and robot closing rate at q_sim against the true person."""
+
+    def __init__(self, conf: StackConfig, kinematics: RobotKinematics) -> None:
+        self.kinematics = kinematics
+        #: Every self pair of the robot description, then every robot × person capsule pair.
+        self.pairs: PairSet = make_pair_set([tuple(p) for p in kinematics.spec.self_pairs], n_people=1)
+        self._barrier = CapsuleBarrier(self.pairs, robot_radii(conf, kinematics), len(kinematics.joint_names))
+
+    def measure(self, q_sim: np.ndarray, dq_sim: np.ndarray, capsules: np.ndarray, radii: np.ndarray,
+                valid: np.ndarray) -> StepTruth:
+        """Clearances and rates at joints ``q_sim`` (8,) rad moving at ``dq_sim`` (8,) rad/s, the true
+        person's ``capsules`` (7, 2, 3) m with ``radii`` (7,) m where ``valid`` (7,)."""
+        self._barrier.set_external(capsules, radii, valid)
+        endpoints, jacobians = self.kinematics.compute(q_sim)
+        robot = endpoints.copy()
+        rows = self._barrier.evaluate(endpoints, jacobians, gamma=1.0, phi=0.0)
+        rate = np.where(rows.enabled, rows.A @ dq_sim, np.nan)
+        return StepTruth(clearance=rows.h.copy(), rate=rate, robot=robot)

@@ -1,0 +1,277 @@
+"""The evaluator against the true person (issue 15): the true person is the unfiltered source, the
+perceived one lags it by exactly the latency and is corrupted reproducibly, every robot surface
+counts, a pair touching at home counts once pressed deeper, a contact is blamed on whoever moved,
+the lag estimate recovers a known delay. Real perception, MuJoCo, Pinocchio and DAQP."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safemimic.evaluate.episode import run_episode
+from safemimic.evaluate.evaluation import evaluation_config, true_person_of
+from safemimic.evaluate.fidelity import best_delay, direction_errors, lag_ms
+from safemimic.evaluate.person import CameraModel, corrupt, interpolate_skeleton, perceive
+from safemimic.evaluate.source import EvaluationInput, open_input
+from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe
+from services.executor.sim import PDGains, SimRobot
+from services.perception.placement import Placement
+from services.perception.scenarios import get_scenario, scenario_recording
+from services.safety.kinematics import RobotKinematics
+from shared.config import ExecutorConfig
+from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX, KEYPOINT_NAMES
+from shared.robot_spec import configured_robot_spec, default_robot_spec_path, load_robot_spec
+from tests.conftest import G1_MJCF
+
+GAINS = PDGains.from_config(ExecutorConfig())
+OURS = load_robot_spec(default_robot_spec_path())
+WRIST = KEYPOINT_INDEX["right_wrist"]
+LEFT_FOREARM = CAPSULE_NAMES.index("left_forearm")
+
+
+def write_recording(path: Path, xyz: np.ndarray, fps: float = 30.0) -> Path:
+    np.savez(path, names=np.array(KEYPOINT_NAMES), t=np.arange(len(xyz)) / fps, xyz=xyz, fps=np.float64(fps),
+             conf=np.ones(xyz.shape[:2]))
+    return path
+
+
+def raise_recording(seconds: float = 2.0) -> np.ndarray:
+    return scenario_recording(get_scenario("side-by-side-arm-raise"), seconds, 30.0, Placement(y=0.7)).xyz.copy()
+
+
+def one_capsule(index: int, a, b, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    capsules = np.zeros((7, 2, 3))
+    capsules[index] = a, b
+    valid = np.zeros(7, bool)
+    valid[index] = True
+    return capsules, np.full(7, radius), valid
+
+
+# ------------------------------------------------------------------------------- the two people
+def test_true_person_is_the_recording_unfiltered_and_interpolated(tmp_path: Path) -> None:
+    """A wrist that jumps 0.4 m in one frame: the point filter rejects the jump for the perceived
+    person, the true person (MuJoCo's) has it at once, and between frames it is interpolated."""
+    xyz = raise_recording()
+    xyz[30:, WRIST] += [0.0, -0.4, 0.0]
+    path = write_recording(tmp_path / "jump.npz", xyz)
+    conf = evaluation_config(str(path), None, "recorded", None)
+    source = open_input(conf)
+    points, valid = interpolate_skeleton(source, np.array([1.0, 1.0 + 0.5 / 30]))
+    assert valid.all()
+    np.testing.assert_allclose(points[0], xyz[30], atol=1e-12)  # exact frame time: the raw frame
+    np.testing.assert_allclose(points[1], 0.5 * (xyz[30] + xyz[31]), atol=1e-12)
+    person = true_person_of(conf, source, RobotKinematics(configured_robot_spec(conf)))
+    k = int(round(1.0 * conf.safety.rate_hz))
+    forearm = CAPSULE_NAMES.index("right_forearm")
+    elbow_to_wrist = xyz[30, WRIST] - xyz[30, KEYPOINT_INDEX["right_elbow"]]
+    expected_end = xyz[30, WRIST] + conf.human.hand_extension * elbow_to_wrist / np.linalg.norm(elbow_to_wrist)
+    np.testing.assert_allclose(person.capsules[k, forearm, 1], expected_end, atol=1e-9)
+    perceived = perceive(conf, source)
+    state = perceived.states[30]
+    assert np.linalg.norm(state.keypoints[WRIST] - xyz[30, WRIST]) > 0.3, "the filter rejects the jump"
+    assert perceived.counters.rejected_jumps > 0
+
+
+def test_perceived_person_lags_the_true_one_by_exactly_the_latency(tmp_path: Path) -> None:
+    path = write_recording(tmp_path / "raise.npz", raise_recording(1.0))
+    conf = evaluation_config(str(path), None, "recorded", None)
+    source = open_input(conf)
+    prompt, late = perceive(conf, source, CameraModel(latency_s=0.0)), perceive(conf, source, CameraModel(latency_s=0.1))
+    np.testing.assert_allclose(late.t - prompt.t, 0.1, atol=1e-12)
+    np.testing.assert_array_equal(late.states[10].capsules, prompt.states[10].capsules)
+    kinematics = RobotKinematics(configured_robot_spec(conf))
+    person = true_person_of(conf, source, kinematics)
+    episode = run_episode(conf, late, person, enforce=True, kinematics=kinematics)
+    frame_times = np.array([f.t for f in source.frames]) - source.frames[0].t
+    expected = np.searchsorted(frame_times + 0.1, episode.t + 1e-9, side="right") - 1
+    np.testing.assert_array_equal(episode.human, expected)  # the state in force: 100 ms old at least
+    assert (episode.human[episode.t < 0.1 - 1e-9] == -1).all()
+
+
+def test_noise_and_dropout_reproduce_with_a_seed_and_noise_runs_along_the_viewing_rays(tmp_path: Path) -> None:
+    path = write_recording(tmp_path / "raise.npz", raise_recording(2.0))
+    conf = evaluation_config(str(path), None, "recorded", None)
+    source = open_input(conf)
+    model = CameraModel(latency_s=0.06, depth_noise_m=0.05, dropout=0.2, seed=7)
+    first, again = perceive(conf, source, model), perceive(conf, source, model)
+    other = perceive(conf, source, CameraModel(latency_s=0.06, depth_noise_m=0.05, dropout=0.2, seed=8))
+    keypoints = [np.stack([s.keypoints for s in track.states]) for track in (first, again, other)]
+    np.testing.assert_array_equal(keypoints[0], keypoints[1])
+    assert not np.array_equal(keypoints[0], keypoints[2])
+    camera = np.asarray(conf.perception.camera.extrinsics.position)
+    rng = np.random.default_rng(7)
+    dropped = np.mean([np.isnan(corrupt(f, camera, model, rng).xyz).any(axis=1).mean() for f in source.frames])
+    assert 0.15 < dropped < 0.25, dropped  # each keypoint missing with probability 0.2
+    assert first.counters.missing_points < dropped * len(source.frames) * len(KEYPOINT_NAMES)  # the hold bridges
+
+    frame = source.frames[5]
+    noisy = corrupt(frame, camera, CameraModel(depth_noise_m=0.05, seed=1), np.random.default_rng(1))
+    shift = noisy.xyz - frame.xyz
+    rays = frame.xyz - camera
+    centre = frame.xyz.mean(axis=0) - camera
+    normals = np.cross(rays, centre)  # the shift lies in the plane of the own ray and the centre's ray
+    assert np.abs(np.einsum("ij,ij->i", shift, normals / np.linalg.norm(normals, axis=1, keepdims=True))).max() < 1e-9
+    assert np.linalg.norm(shift, axis=1).min() > 0
+
+
+def test_camera_model_refuses_out_of_range_values() -> None:
+    for bad in ({"latency_s": -0.01}, {"depth_noise_m": -1.0}, {"dropout": 1.0}):
+        with pytest.raises(ValueError):
+            CameraModel(**bad)
+
+
+# ------------------------------------------------------------------------------- every surface
+def test_a_visual_only_link_touching_the_person_is_counted(tmp_path: Path) -> None:
+    """A hand with no collision geometry (like Menagerie's rubber hands): MuJoCo's contact list
+    cannot see it, the surface distance does."""
+    text = OURS.model_path.read_text()
+    body = '<body name="left_elbow_link"'
+    start = text.index(body)
+    close = text.index(">", start) + 1
+    hand = ('<body name="left_test_hand" pos="0.6 0 0"><geom name="left_test_hand" type="sphere" size="0.04" '
+            'contype="0" conaffinity="0" group="2"/></body>')
+    model = tmp_path / OURS.model_path.name
+    model.write_text(text[:close] + hand + text[close:])
+    for mesh_dir in ("meshes", "assets"):
+        if (OURS.model_path.parent / mesh_dir).is_dir():
+            (tmp_path / mesh_dir).symlink_to(OURS.model_path.parent / mesh_dir)
+    sim = SimRobot(OURS.with_model(model), GAINS)
+    hand_geom = sim.model.geom("left_test_hand").id
+    assert hand_geom in set(sim.surface_geoms.tolist())
+    centre = sim.data.geom_xpos[hand_geom].copy()
+    sim.set_human(*one_capsule(LEFT_FOREARM, centre + [0.0, 0.0, -0.05], centre + [0.0, 0.0, 0.05], 0.02))
+    sim.step()
+    touching = sim.surface_contacts()
+    assert [c.robot_body for c in touching] == ["left_test_hand"], touching
+    assert [(c.body_a, c.body_b) for c in sim.contacts().robot_human] == [("left_test_hand", "left_forearm")]
+
+
+def test_the_real_g1_rubber_hands_are_robot_surfaces() -> None:
+    if not G1_MJCF.is_file():
+        pytest.skip(f"real G1 model not found at {G1_MJCF} (set SAFEMIMIC_TEAM_SHARED to the team folder)")
+    sim = SimRobot(OURS.with_model(G1_MJCF), GAINS)
+    names = {sim.model.geom(g).name or f"#{g}" for g in sim.surface_geoms}
+    hands = [g for g in sim.surface_geoms if sim.model.geom_dataid[g] >= 0
+             and "rubber_hand" in sim.model.mesh(sim.model.geom_dataid[g]).name]
+    assert len(hands) == 2, names
+    centre = sim.data.geom_xpos[hands[0]].copy()
+    sim.set_human(*one_capsule(LEFT_FOREARM, centre + [0.0, 0.0, -0.03], centre + [0.0, 0.0, 0.03], 0.01))
+    sim.step()
+    assert any(c.robot_body.endswith("wrist_yaw_link") for c in sim.surface_contacts())
+
+
+def test_a_pair_touching_at_home_counts_once_pressed_deeper() -> None:
+    home = {**OURS.home, "left_shoulder_roll_joint": -0.1, "left_elbow_joint": 1.9}  # upper arm on the chest
+    sim = SimRobot(OURS.model_copy(update={"home": home}), GAINS)
+    pair = ("left_shoulder_yaw_link", "torso_link")
+    assert pair in sim.home_contacts
+    sim.step(100)
+    assert pair not in {(c.body_a, c.body_b) for c in sim.contacts().robot_robot}
+    q = sim.q_home.copy()
+    q[sim.joint_names.index("left_shoulder_roll_joint")] = -0.5  # further into the chest
+    sim.set_command(q)
+    sim.step(250)
+    pressed = {(c.body_a, c.body_b): c.depth for c in sim.contacts().robot_robot}
+    assert pressed.get(pair, 0.0) > 1e-3, pressed
+
+
+# ------------------------------------------------------------------------------- who moved
+def test_an_arm_driven_into_a_still_person_is_robot_caused() -> None:
+    sim = SimRobot(OURS, GAINS)
+    kinematics = RobotKinematics(OURS)
+    probe = TruthProbe(evaluation_config(None, "neutral", "auto", None), kinematics)
+    hand = sim.data.body("left_elbow_link").xpos.copy() + [0.25, 0.0, 0.0]
+    capsules, radii, valid = one_capsule(CAPSULE_NAMES.index("torso"), hand + [0.12, -0.3, 0.0],
+                                         hand + [0.12, 0.3, 0.0], 0.05)
+    sim.set_human(capsules, radii, valid)
+    elbow = sim.joint_names.index("left_elbow_joint")
+    pitch = sim.joint_names.index("left_shoulder_pitch_joint")
+    caused, rates = [], []
+    for k in range(400):  # the forearm swings forward/up into the torso capsule in front of it
+        q = sim.q_home.copy()
+        q[pitch] -= min(1.2, 0.006 * k)
+        q[elbow] -= min(0.6, 0.003 * k)
+        sim.set_command(q)
+        sim.step()
+        touching = sim.surface_contacts()
+        if touching:
+            caused.append(any(c.closing_speed > CLOSING_SPEED for c in touching))
+            step = probe.measure(sim.q, sim.dq, capsules, radii, valid)
+            rates.append(np.nanmin(step.rate[~probe.pairs.is_self]))
+    assert caused and np.mean(caused) > 0.5, caused
+    assert min(rates) < -CLOSING_SPEED  # the capsule view agrees: the robot closes the pair
+
+
+def test_a_person_moving_into_a_still_robot_is_person_caused() -> None:
+    sim = SimRobot(OURS, GAINS)
+    endpoints, _ = RobotKinematics(OURS).compute(sim.q_home)
+    forearm = endpoints[CAPSULE_NAMES.index("left_forearm")].mean(axis=0)
+    steps = 0
+    for k in range(400):  # a capsule sliding sideways into the still forearm at 0.5 m/s
+        x = forearm + [0.0, 0.3 - 0.5 * k * sim.timestep, 0.0]
+        sim.set_human(*one_capsule(LEFT_FOREARM, x + [0.0, 0.0, -0.2], x + [0.0, 0.0, 0.2], 0.04))
+        sim.set_command(sim.q_home)
+        sim.step()
+        touching = sim.surface_contacts()
+        if touching:
+            steps += 1
+            assert all(c.closing_speed <= CLOSING_SPEED for c in touching), [c.closing_speed for c in touching]
+    assert steps > 20
+
+
+# ------------------------------------------------------------------------------- fidelity
+def test_lag_recovers_a_known_delay() -> None:
+    dt = 0.002
+    t = np.arange(0, 8.0, dt)
+    truth = np.stack([0.6 * np.sin(2 * np.pi * 0.4 * t + j) + 0.2 * np.sin(2 * np.pi * 1.3 * t) for j in range(8)], axis=1)
+    truth[:, 7] = 0.01 * np.sin(t)  # one joint that barely moves: left out
+    delayed = np.vstack([np.repeat(truth[:1], 50, axis=0), truth[:-50]])  # 100 ms late
+    assert lag_ms(truth, delayed, dt) == pytest.approx(100.0, abs=5.0)
+    assert best_delay(truth[:, 0], truth[:, 0], dt) == pytest.approx(0.0)
+    assert best_delay(truth[:100, 0], truth[:100, 0], dt) is None  # too short to search
+    assert lag_ms(np.zeros((4000, 8)), np.zeros((4000, 8)), dt) is None  # nothing moves
+
+
+def test_direction_error_is_zero_for_the_same_pose_and_mirrors_facing() -> None:
+    """A robot whose capsules lie exactly along the person's segments has 0° error; facing, the
+    robot's left arm is compared with the person's right one, reflected."""
+    p = np.zeros((1, 15, 3))
+    K = KEYPOINT_INDEX
+    p[0, K["pelvis"]] = [0, 0, 1.0]
+    p[0, K["left_shoulder"]], p[0, K["right_shoulder"]] = [0, 0.2, 1.5], [0, -0.2, 1.5]
+    p[0, K["left_elbow"]], p[0, K["left_wrist"]] = [0.3, 0.2, 1.5], [0.3, 0.2, 1.8]  # forward, forearm up
+    p[0, K["right_elbow"]], p[0, K["right_wrist"]] = [0, -0.2, 1.2], [0, -0.2, 0.9]  # hanging
+    valid = np.ones((1, 15), bool)
+    robot = np.zeros((1, 7, 2, 3))
+    C = {n: i for i, n in enumerate(CAPSULE_NAMES)}
+    robot[0, C["torso"]] = p[0, K["pelvis"]], [0, 0, 1.5]
+    for side in ("left", "right"):
+        robot[0, C[f"{side}_upper_arm"]] = p[0, K[f"{side}_shoulder"]], p[0, K[f"{side}_elbow"]]
+        robot[0, C[f"{side}_forearm"]] = p[0, K[f"{side}_elbow"]], p[0, K[f"{side}_wrist"]]
+    np.testing.assert_allclose(direction_errors(p, valid, robot, mirror=False), 0.0, atol=1e-6)
+    mirrored = direction_errors(p, valid, robot, mirror=True)
+    assert mirrored[0, 0] > 80  # the robot's left arm points forward, the person's right hangs
+
+
+def test_evaluation_reports_the_truth_keys(tmp_path: Path) -> None:
+    from safemimic.evaluate.evaluation import evaluate
+
+    path = write_recording(tmp_path / "raise.npz", raise_recording(3.0))
+    metrics = evaluate(evaluation_config(str(path), None, "recorded", None), camera=CameraModel(seed=3)).metrics()
+    for run in ("cbf", "nominal"):
+        m = metrics[run]
+        assert m["person_caused_contact_steps"] + m["robot_caused_contact_steps"] == m["true_contacts_robot_human"]
+        assert set(m["fidelity"]) == {"lag_ms", "rms_true", "rms_true_free", "direction_error_deg_p50",
+                                      "direction_error_deg_p95"}
+        assert m["fidelity"]["lag_ms"] is not None and m["fidelity"]["lag_ms"] > 0
+    assert metrics["nominal"]["true_contacts_robot_human"] > metrics["cbf"]["true_contacts_robot_human"]
+    assert metrics["input"]["latency_ms"] == 60.0 and metrics["input"]["seed"] == 3
+
+
+def test_evaluation_input_is_read_once_in_order() -> None:
+    conf = evaluation_config(None, "cross-arm-reach", "auto", None)
+    source = open_input(conf, 1.0)
+    assert isinstance(source, EvaluationInput) and len(source.frames) == 30
+    assert all(b.t > a.t for a, b in zip(source.frames, source.frames[1:]))
