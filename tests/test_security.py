@@ -11,6 +11,7 @@ messages from the identities allowed to send them.
 from __future__ import annotations
 
 import json
+import os
 import stat
 import subprocess
 import sys
@@ -105,6 +106,11 @@ def test_tls_settings_give_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="needs dir"):
         load_config(overrides={"bus": {"tls": {"identity": "safety"}}}, environ={})
     assert load_config(overrides={"bus": {"tls": None}}, environ={}).bus.tls is None  # --insecure
+    (tmp_path / "ours" / "access_control.json5").unlink()
+    router = _cli("router", "--listen", f"tls/127.0.0.1:{free_port()}", "--no-multicast", "--certs", str(tmp_path / "ours"))
+    assert router.returncode == 2 and "access-control file" in router.stderr and "certs stack" in router.stderr
+    peer = _cli("health", "--certs", str(tmp_path / "ours"))  # default.yaml's peer mode
+    assert peer.returncode == 2 and "mode client" in peer.stderr
 
 
 # the access control is the table ------------------------------------------------------------------
@@ -246,6 +252,13 @@ def test_each_identity_puts_only_its_own_keys_and_declares_only_its_own_token(se
         assert inbox.alive == {"perception"}  # its own token, not the forged one
         assert health_inbox.count("human/state") == 0
         assert health.alive_services(1.0) == {"perception"}
+        flags = ["--mode", "client", "--connect", secure_router.endpoint, "--no-multicast", "--certs", str(secure_router.certs)]
+        result = _cli("health", "perception", *flags)  # the health certificate
+        assert result.returncode == 0 and json.loads(result.stdout) == {"alive": ["perception"], "missing": []}, result
+        as_service = subprocess.run(  # a compose health check: inside a service's container, its own certificate
+            [sys.executable, "-m", "safemimic.cli", "health", "perception", "safety", *flags], capture_output=True,
+            text=True, timeout=60, cwd=REPO, env={**os.environ, "SAFEMIMIC__BUS__TLS__IDENTITY": "executor"})
+        assert as_service.returncode == 1 and json.loads(as_service.stdout)["missing"] == ["safety"], as_service
 
 
 def _wait(predicate, timeout: float, what: str) -> None:
