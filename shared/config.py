@@ -8,6 +8,7 @@ explicit overrides. Every error is a :class:`ConfigError` naming the offending d
 from __future__ import annotations
 
 import copy
+import math
 import os
 from collections.abc import Mapping
 from enum import Enum
@@ -373,6 +374,14 @@ class PoseAnglesConfig(_Section):
         default=0.2, ge=0, le=1, description="|sagittal projection| below which pitch updates are damped"
     )
     min_segment: float = Field(default=0.05, gt=0, le=1, description="shorter segments make angles invalid (m)")
+    seam: float = Field(
+        default=1.25 * math.pi, gt=math.pi, le=1.5 * math.pi,
+        description="continuous shoulder angles lie in [seam − 2π, seam] (rad): the wrap is behind/over the head",
+    )
+    branch_switch_rate: float = Field(
+        default=4.0, gt=0, le=100,
+        description="a shoulder angle's branch switch (a jump ≥ π/2 in one frame) is spread at this rate (rad/s)",
+    )
 
     @model_validator(mode="after")
     def _observability_inside_paper_zone(self) -> PoseAnglesConfig:

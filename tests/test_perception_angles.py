@@ -278,3 +278,73 @@ def torso_turn(xyz: np.ndarray) -> np.ndarray:
     axes = np.array([torso_axes(p[K["pelvis"]], p[K["left_shoulder"]], p[K["right_shoulder"]], 0.05) for p in xyz])
     relative = np.einsum("tij,tkj->tik", axes[1:], axes[:-1])
     return np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1))
+
+
+# --- the windmill: an arm circling forward, overhead, down behind, and around again --------------
+
+def windmill(turns: float = 2.0, step_deg: float = 2.0) -> tuple[np.ndarray, float]:
+    """Both arms straight, circling in the sagittal plane from hanging down (forward first)."""
+    step = math.radians(step_deg)
+    frames = []
+    for i in range(int(round(turns * 2 * math.pi / step)) + 1):
+        b = i * step  # the arm's angle from hanging down, forward positive
+        direction = (math.sin(b), 0.0, -math.cos(b))
+        frames.append(with_arm(with_arm(standing(), "left", direction), "right", direction))
+    return np.array(frames), step
+
+
+def test_a_windmill_never_jumps_an_angle_or_the_robot_target() -> None:
+    """Through the real pipeline (filter → angles) and the real retargeting of the shipped robot:
+    no angle changes by π or more between frames, θ stays in [seam − 2π, seam], and q_nom moves at
+    most 0.2 rad per frame while the arm moves 2° (before: pitch jumped 2π, q_nom ≈ 4.3 rad)."""
+    from services.perception.pipeline import PerceptionPipeline
+    from services.perception.stream import SkeletonFrame
+    from services.safety.assembly import make_retargeter
+    from services.safety.kinematics import RobotKinematics
+    from shared.config import load_config
+    from shared.robot_spec import configured_robot_spec
+
+    conf = load_config(environ={})
+    spec = configured_robot_spec(conf)
+    retarget = make_retargeter(conf, spec, RobotKinematics(spec))
+    perception = PerceptionPipeline(conf.perception, conf.human)
+    frames, _ = windmill()
+    theta, q_nom, keypoints = [], [], []
+    for i, points in enumerate(frames):
+        t = i / FPS
+        result = perception.step(SkeletonFrame(t=t, xyz=points, conf=np.ones(15), captured=t))
+        assert result.theta_valid.all()
+        theta.append(result.theta)
+        keypoints.append(result.keypoints)
+        q_nom.append(retarget(result.theta, result.theta_valid))
+    theta, q_nom = np.array(theta), np.array(q_nom)
+    seam = conf.perception.angles.seam
+    assert np.isfinite(theta).all() and theta.min() >= seam - 2 * math.pi and theta.max() <= seam
+    assert np.abs(np.diff(theta, axis=0)).max() < math.pi
+    assert np.abs(np.diff(q_nom, axis=0)).max() <= 0.2
+    pitch = theta[:, [A["left_shoulder_pitch"], A["right_shoulder_pitch"]]]
+    assert pitch.max() > 0.9 * math.pi  # it did follow the arm overhead (continuous through overhead)
+    # Each time the arm hangs down again the angles are the paper's on the same filtered skeleton:
+    # the switch at the seam (2π at branch_switch_rate) was spread well within the half turn since.
+    for down in range(180, len(frames), 180):
+        paper, _ = estimate(keypoints[down], "paper")
+        np.testing.assert_allclose(theta[down], paper, atol=1e-9)
+        assert abs(theta[down, A["left_shoulder_pitch"]]) < 0.05  # and that is about 0 (filter lag)
+
+
+def test_the_windmill_switch_is_spread_at_the_configured_rate() -> None:
+    """Past the seam, pitch returns to the tracked branch at branch_switch_rate (rad/s) minus the
+    arm's own motion; a slower rate takes proportionally longer; angles move < π a frame at any rate."""
+    frames, step = windmill(turns=1.5)
+    for rate in (4.0, 2.0):
+        conf = PoseAnglesConfig(branch_switch_rate=rate)
+        pose = PoseEstimator(conf)
+        theta = np.array([pose(points, ALL_VALID, t=i / FPS)[0] for i, points in enumerate(frames)])
+        pitch = theta[:, A["left_shoulder_pitch"]]
+        steps = np.diff(pitch)
+        assert np.abs(np.diff(theta, axis=0)).max() < math.pi
+        falling = steps < 0  # only while the switch is spread does pitch move against the arm
+        assert falling.any()
+        np.testing.assert_allclose(steps[falling][1:-1], step - rate / FPS, atol=1e-9)
+        assert conf.seam - step <= pitch.max() <= conf.seam  # followed the arm up to the seam, then unwound
+        assert np.count_nonzero(falling) == pytest.approx(2 * math.pi / (rate / FPS), abs=1)  # e: 2π → 0

@@ -45,22 +45,46 @@ that the robot, driven by these angles, points its arm where the person does. Th
    noisy measurement is followed only in proportion to how observable it is. Without history
    (first frame) p = p̂, the branch with |roll| ≤ π/2 (the G1's roll range is the narrow one),
    except where pitch is unobservable (s < ``pitch_observability``): there the untwisted branch
-   |p| ≤ π/2 is taken, so an arm held out sideways reads pitch 0, roll π/2.
+   |p| ≤ π/2 is taken, so an arm held out sideways reads pitch 0, roll π/2. Then p is wrapped
+   into [S − 2π, S) with S = ``seam`` (default 5π/4: the wrap is 45° behind straight overhead,
+   a direction arms seldom take; S ∈ (π, 3π/2] keeps overhead = π and the whole region below
+   the horizontal inside, so every p below is the same representative the paper zone uses).
 2. roll: r = atan2(o, w) with w = f' sin(λp) + d cos(λp), λ = smoothstep((zone − d)/zone) in [0, 1].
    λ = 0 (paper zone) gives the paper's roll atan2(o, d); λ = 1 (arm at or above the shoulder)
    gives the roll that best reproduces the arm direction after pitch p (it maximises the dot
    product between the chain's direction and u), which on the tracked branch is the exact
-   inverse of the chain. Outside the paper zone r is unwrapped against the previous frame.
+   inverse of the chain. Outside the paper zone r is wrapped into [S − 2π, S) too.
+3. output (branch switches spread): steps 1–2 give the *tracked* angles x (pitch and roll, each
+   on its own). Continuous motion changes x by little per frame; a change |x − x_prev| ≥ π/2 in
+   one frame (:data:`BRANCH_JUMP`: 47 rad/s at 30 Hz, no arm moves so) is a branch switch — x
+   wrapping at S when the arm circles on (a "windmill": forward, overhead, down behind), or
+   snapping onto the paper's branch on entering the paper zone after the arm went overhead on the
+   roll branch, or the roll's w changing sign. The output is θ = x + e with an offset e:
 
-So the two estimators agree exactly wherever the paper's is well conditioned — the default
-``paper_zone`` = 0.5 is an upper arm at least 30° below horizontal, where the paper's angles
-move at most 1/d = 2× as fast as the arm — and the continuous one stays continuous through
-overhead arm motion. Between d = 0.5 and the horizontal the roll blends smoothly from the
-paper's to the chain's. Known limits: an arm passing close to its own lateral axis (gimbal lock
-of the pitch-roll chain) must turn pitch by up to π there, which κ spreads over several frames;
-an arm that went overhead on the roll branch and comes down in front snaps back to the paper's
-values on entering the paper zone. A frame where an arm is invalid forgets its history (the
-next valid frame starts afresh).
+       e ← e − (x − x_prev)                    if |x − x_prev| ≥ π/2 (θ does not follow the jump),
+       e ← e − clamp(e, ±δ),                   δ = min(``branch_switch_rate``·Δt, π/4),
+       e ← clamp(e, S − 2π − x, S − x)          (so θ ∈ [S − 2π, S]),
+
+   e = 0 on a fresh start. So θ is bounded in [S − 2π, S], never changes by π or more between
+   frames (|Δθ| < π/2 + π/4: the clamp projects onto an interval holding θ_prev, so it never
+   adds to a step), and after a switch returns to the tracked angles at ``branch_switch_rate``
+   rad/s (default 4 rad/s, the robot's default joint speed bound u_max: the target moves no
+   faster than the robot may). While e ≠ 0 θ is not the tracked angle: a windmilling arm's
+   pitch swings back from S through the front (a shoulder pitch joint cannot turn round; the
+   only other way, through the lateral axis, would swing the arm out sideways into a person
+   beside the robot), taking 2π/rate ≈ 1.6 s at the default. ``t`` (s) of each frame gives Δt;
+   without it frames are 1/30 s apart.
+
+So the two estimators agree exactly wherever the paper's is well conditioned (while no switch
+is being spread) — the default ``paper_zone`` = 0.5 is an upper arm at least 30° below
+horizontal, where the paper's angles move at most 1/d = 2× as fast as the arm — and the
+continuous one stays continuous through overhead motion. Between d = 0.5 and the horizontal the
+roll blends smoothly from the paper's to the chain's. Known limits: an arm passing close to its
+own lateral axis (gimbal lock of the pitch-roll chain) must turn pitch by up to π there, which κ
+spreads over several frames; an arm that went overhead on the roll branch and comes down in
+front switches back to the paper's values on entering the paper zone (spread by step 3); an arm
+jittering across the seam stays near S (each crossing is absorbed as it happens). A frame where an arm is invalid forgets its history (the next valid frame
+starts afresh, e = 0).
 
 Validity: torso angles need the pelvis and both shoulders with a torso and a shoulder line of at
 least ``min_segment``; shoulder angles also need the elbow and an upper arm ≥ ``min_segment``;
@@ -88,6 +112,12 @@ _ARMS = (
 )
 N_ANGLES = len(POSE_ANGLE_NAMES)
 _TWO_PI = 2.0 * math.pi
+#: A tracked shoulder angle changing this much (rad) in one frame switched branch: it is spread.
+BRANCH_JUMP = 0.5 * math.pi
+#: At most this much (rad) of a spread switch is released per frame, whatever the frame gap.
+MAX_DECAY_STEP = 0.25 * math.pi
+#: Frame period assumed when the estimator is called without times (s).
+NOMINAL_FRAME_S = 1.0 / 30.0
 Vec = tuple[float, float, float]
 
 
@@ -111,6 +141,11 @@ def wrap_2pi(angle: float) -> float:
 def wrap_pi(angle: float) -> float:
     """``angle`` wrapped into [−π/2, π/2): the difference modulo a half turn."""
     return angle - math.pi * math.floor(angle / math.pi + 0.5)
+
+
+def wrap_seam(angle: float, seam: float) -> float:
+    """``angle`` wrapped into [seam − 2π, seam)."""
+    return angle - _TWO_PI * (math.floor((angle - seam) / _TWO_PI) + 1.0)
 
 
 def smoothstep(x: float) -> float:
@@ -175,6 +210,9 @@ class PoseEstimator:
         self.theta = np.zeros(N_ANGLES)
         self.theta_valid = np.zeros(N_ANGLES, dtype=bool)
         self._history = [False, False]  # per arm: previous pitch/roll usable for branch tracking
+        self._tracked = [[0.0, 0.0], [0.0, 0.0]]  # per arm: the chain's (pitch, roll) before spreading
+        self._offset = [[0.0, 0.0], [0.0, 0.0]]  # per arm: output − tracked, decaying to 0 (step 3)
+        self._t: float | None = None
 
     def configure(self, conf: PoseAnglesConfig) -> None:
         """Estimator and thresholds for the following frames."""
@@ -184,9 +222,13 @@ class PoseEstimator:
     def reset(self) -> None:
         """Forget the branch history (held outputs stay, for display only: they are invalid now)."""
         self._history = [False, False]
+        self._t = None
         self.theta_valid[:] = False
 
-    def __call__(self, xyz: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, xyz: np.ndarray, valid: np.ndarray, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """θ, θ_valid of one frame; ``t`` (s) paces the branch-switch spreading (None: frames 1/30 s apart)."""
+        dt = NOMINAL_FRAME_S if t is None or self._t is None else max(0.0, t - self._t)
+        self._t = t
         points: list[Vec] = xyz.tolist()
         present: list[bool] = valid.tolist()
         theta, ok = self.theta, self.theta_valid
@@ -206,7 +248,7 @@ class PoseEstimator:
                 self._history[arm] = False
                 continue
             if self.continuous:
-                pitch, roll = self._continuous(arm, geometry, float(theta[first]), float(theta[first + 1]))
+                pitch, roll = self._spread(arm, self._continuous(arm, geometry), dt)
             else:
                 pitch, roll = math.atan2(geometry.f, geometry.d), math.atan2(geometry.o, geometry.d)
             theta[first], theta[first + 1] = pitch, roll
@@ -240,10 +282,12 @@ class PoseEstimator:
             geometry.d = -_dot(e_z, upper) / upper_len
         return geometry
 
-    def _continuous(self, arm: int, g: _ArmGeometry, pitch_prev: float, roll_prev: float) -> tuple[float, float]:
-        zone = self.conf.paper_zone
+    def _continuous(self, arm: int, g: _ArmGeometry) -> tuple[float, float]:
+        """Steps 1–2 of the module docstring: the tracked (pitch, roll), each in [seam − 2π, seam)."""
+        zone, seam = self.conf.paper_zone, self.conf.seam
         measured = math.atan2(g.f, g.d)
         history = self._history[arm]
+        pitch_prev = self._tracked[arm][0]
         observability = self.conf.pitch_observability
         s = math.hypot(g.f, g.d)
         if g.d >= zone:
@@ -255,11 +299,30 @@ class PoseEstimator:
         else:
             gain = 1.0 if s >= observability else s / observability
             pitch = pitch_prev + gain * wrap_pi(measured - pitch_prev)
+        pitch = wrap_seam(pitch, seam)
         blend = smoothstep((zone - g.d) / zone)
         if blend == 0.0:
             return pitch, math.atan2(g.o, g.d)
         q = blend * pitch
-        roll = math.atan2(g.o, g.f * math.sin(q) + g.d * math.cos(q))
-        if history:
-            roll = roll_prev + wrap_2pi(roll - roll_prev)
-        return pitch, roll
+        return pitch, wrap_seam(math.atan2(g.o, g.f * math.sin(q) + g.d * math.cos(q)), seam)
+
+    def _spread(self, arm: int, tracked: tuple[float, float], dt: float) -> tuple[float, float]:
+        """Step 3 of the module docstring: output = tracked + offset, jumps absorbed, offset decaying."""
+        seam = self.conf.seam
+        if not self._history[arm]:
+            self._tracked[arm] = list(tracked)
+            self._offset[arm] = [0.0, 0.0]
+            return tracked
+        decay = min(self.conf.branch_switch_rate * dt, MAX_DECAY_STEP)
+        previous, offset = self._tracked[arm], self._offset[arm]
+        out = [0.0, 0.0]
+        for i, target in enumerate(tracked):
+            e = offset[i]
+            step = target - previous[i]
+            if abs(step) >= BRANCH_JUMP:
+                e -= step  # the output does not follow the jump
+            e -= min(decay, max(-decay, e))
+            e = min(seam - target, max(seam - _TWO_PI - target, e))  # output in [seam − 2π, seam]
+            offset[i], out[i] = e, target + e
+        self._tracked[arm] = list(tracked)
+        return out[0], out[1]

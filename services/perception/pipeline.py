@@ -86,7 +86,7 @@ class PerceptionPipeline:
         if self.filter.resets != resets_before:
             self.estimator.reset()
             self.capsules.reset()
-        theta, theta_valid = self.estimator(filtered.points, filtered.valid)
+        theta, theta_valid = self.estimator(filtered.points, filtered.valid, frame.t)
         capsules, capsule_valid, velocities = self.capsules(filtered)
         keypoints = np.where(filtered.valid[:, None], filtered.points, 0.0)  # valid points are finite
 
