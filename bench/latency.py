@@ -7,7 +7,11 @@ Real processes, the command lines of :mod:`safemimic.stack`: ``executor``, ``saf
   enforcing the access control generated from the service table (the deployed, secure topology;
   a throwaway CA from ``safemimic certs stack``; the probe has the ``viewer`` certificate);
 * ``router``: the same over plain tcp without access control (``--insecure``);
-* ``direct``: the same services as peers connected straight to the safety service (no router, open).
+* ``direct``: the same services as peers connected straight to the safety service (no router, open);
+* ``router_tls_viewer``: ``router_tls`` with the live Rerun viewer (``safemimic viewer``, its own
+  certificate, serving its web viewer) subscribed to every topic: ``viewer_cost_p99_ms`` and the
+  safety loop's ``deadline_misses`` (from ``SafetyStatus``, over the sampled window) with and
+  without it show whether watching changes the loop's deadlines (skipped without rerun-sdk).
 
 ``tls_cost_p50_ms`` / ``tls_cost_p99_ms`` are ``router_tls`` minus ``router``: what authentication,
 encryption and the access-control checks add per skeleton.
@@ -33,10 +37,18 @@ import numpy as np
 
 from safemimic.certs import make_stack
 from safemimic.launch import Child, free_port, launch, stop_all
-from safemimic.stack import Site, client_flags, command, router_command, router_endpoint, write_paper_scenarios
+from safemimic.stack import (
+    Site,
+    client_flags,
+    command,
+    router_command,
+    router_endpoint,
+    viewer_command,
+    write_paper_scenarios,
+)
 from shared.bus import Bus
 from shared.config import BusConfig, TlsConfig, load_config
-from shared.messages import HumanState, JointCommand
+from shared.messages import HumanState, JointCommand, SafetyStatus
 
 BUDGET_P99_MS = 5.0
 SERVICES = ("executor", "safety", "perception")
@@ -55,6 +67,12 @@ class LatencyProbe:
         self.human_hop: list[float] = []
         self.alive: set[str] = set()
         self._last_human_stamp: float | None = None
+        self.misses: list[int] = []  # the safety loop's deadline_misses while recording
+
+    def on_status(self, message: SafetyStatus) -> None:
+        with self.lock:
+            if self.recording:
+                self.misses.append(message.deadline_misses)
 
     def on_human(self, message: HumanState) -> None:
         now = time.monotonic()
@@ -93,7 +111,7 @@ def _free_endpoint(secure: bool = False) -> str:
 def measure(topology: str, seconds: float, run_dir: Path) -> dict[str, Any]:
     """Start the services in ``topology`` (``router_tls``, ``router`` or ``direct``), sample
     ``seconds``, stop them."""
-    secure = topology == "router_tls"
+    secure = topology.startswith("router_tls")
     endpoint = _free_endpoint(secure)
     certs = run_dir / "certs"
     if secure:
@@ -102,7 +120,7 @@ def measure(topology: str, seconds: float, run_dir: Path) -> dict[str, Any]:
                 certs=str(certs) if secure else None)
     children: list[Child] = []
     try:
-        if topology in ("router", "router_tls"):
+        if topology in ("router", "router_tls", "router_tls_viewer"):
             children.append(launch(topology, router_command(endpoint, site.certs), run_dir))
             flags = {name: client_flags(endpoint, site.certs) for name in SERVICES}
             tls = TlsConfig(dir=str(certs), identity="viewer") if secure else None
@@ -116,6 +134,8 @@ def measure(topology: str, seconds: float, run_dir: Path) -> dict[str, Any]:
             probe_conf = BusConfig(mode="peer", connect=list(endpoints.values()), multicast_scouting=False)
         for name in SERVICES:
             children.append(launch(f"{topology}-{name}", command(name, site, flags[name]), run_dir))
+        if topology == "router_tls_viewer":
+            children.append(launch(f"{topology}-viewer", viewer_command(site, free_port(), free_port()), run_dir))
         return _sample(probe_conf, children, seconds)
     finally:
         stop_all(children)
@@ -127,6 +147,7 @@ def _sample(conf: BusConfig, children: list[Child], seconds: float) -> dict[str,
     with bus:
         bus.subscribe("human/state", probe.on_human)
         bus.subscribe("robot/command", probe.on_command)
+        bus.subscribe("safety/status", probe.on_status)
         bus.watch_alive(probe.on_alive)
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not set(SERVICES) <= probe.alive:
@@ -140,8 +161,9 @@ def _sample(conf: BusConfig, children: list[Child], seconds: float) -> dict[str,
         time.sleep(seconds)
         with probe.lock:
             probe.recording = False
+    misses = probe.misses[-1] - probe.misses[0] if len(probe.misses) > 1 else None
     return {"published": _stats(probe.published), "received": _stats(probe.received),
-            "human_hop": _stats(probe.human_hop)}
+            "human_hop": _stats(probe.human_hop), "deadline_misses": misses}
 
 
 def _open(conf: BusConfig, children: list[Child]) -> Bus:
@@ -163,6 +185,9 @@ def run(seconds: float = 30.0) -> dict[str, Any]:
         secure = measure("router_tls", seconds, run_dir)
         routed = measure("router", seconds, run_dir)
         direct = measure("direct", seconds, run_dir)
+        import importlib.util
+
+        viewed = measure("router_tls_viewer", seconds, run_dir) if importlib.util.find_spec("rerun") else None
     p50, p99 = routed["published"]["p50"], routed["published"]["p99"]
     tls_p50, tls_p99 = secure["published"]["p50"], secure["published"]["p99"]
     return {
@@ -185,6 +210,12 @@ def run(seconds: float = 30.0) -> dict[str, Any]:
         "tls_human_hop_p50_ms": secure["human_hop"]["p50"],
         "budget_p99": BUDGET_P99_MS,
         "within_budget": max(p99, tls_p99) <= BUDGET_P99_MS,
+        # the same secure topology with the live Rerun viewer subscribed (None: rerun-sdk not installed)
+        "viewer_p99_ms": viewed and viewed["published"]["p99"],
+        "viewer_cost_p99_ms": viewed and viewed["published"]["p99"] - tls_p99,
+        "deadline_misses": secure["deadline_misses"],
+        "viewer_deadline_misses": viewed and viewed["deadline_misses"],
+        "router_tls_viewer": viewed,
         "router_tls": secure,
         "router": routed,
         "direct": direct,

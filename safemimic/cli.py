@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("bench.run", "run the benchmarks, print a table and write JSON under bench/results/"),
     "reliability": ("bench.reliability.run", "run the reliability checks (watchdogs, rate limits, faults, fuzz, load) → bench/results/reliability.json"),
     "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),
+    "viewer": ("services.viewer.service", "live 3D view in Rerun of robot, person and barriers (subscribes only; web viewer, --save FILE.rrd)"),
     "health": ("safemimic.health", "which services are alive on the bus (liveliness tokens); exit 0 if the named ones are"),
     "certs": ("safemimic.certs", "the deployment's CA and one certificate per service (mutual TLS; the router's access control)"),
 }

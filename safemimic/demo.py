@@ -19,6 +19,7 @@ Children also get SIGTERM from the kernel if this process dies abruptly, so none
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import math
 import os
@@ -43,6 +44,7 @@ from safemimic.stack import (
     command,
     router_command,
     router_endpoint,
+    viewer_command,
     write_paper_scenarios,
 )
 from services.config_api.token import TOKEN_ENV
@@ -169,6 +171,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument("--placement", default="side-by-side", metavar="WHERE",
                         help="where the person stands: side-by-side (default) | facing | recorded | x,y,yaw")
     parser.add_argument("--api-port", type=int, default=API_PORT, metavar="PORT", help=f"web console port (default {API_PORT}; 0: any free port)")
+    parser.add_argument("--no-rerun", action="store_true",
+                        help="do not start the live Rerun viewer (started by default when rerun-sdk is installed)")
     parser.add_argument("--insecure", action="store_true",
                         help="the open tcp bus: no TLS, no access control (anyone on this machine can command the robot)")
     return parser
@@ -234,6 +238,8 @@ def run(args: argparse.Namespace) -> int:
                 return 1
             for spec in SERVICES:
                 children.append(_start(spec.name, command(spec.name, site), run_dir, {TOKEN_ENV: token}))
+            if _rerun_wanted(args):
+                children.append(_start("viewer", viewer_command(site, free_port(), free_port()), run_dir))
             elapsed = _watch_stack(args, site, children, watch, stop, token)
         finally:  # the services first, then the router they are connected through
             exit_codes = {**stop_all(children[1:]), **stop_all(children[:1])}
@@ -242,6 +248,16 @@ def run(args: argparse.Namespace) -> int:
         args.summary_json.write_text(json.dumps(summary, indent=2) + "\n")
         print(f"  summary written to {args.summary_json}")
     return 0 if summary["ok"] else 1
+
+
+def _rerun_wanted(args: argparse.Namespace) -> bool:
+    """The live viewer runs unless --no-rerun, where rerun-sdk is installed (the viz extra)."""
+    if args.no_rerun:
+        return False
+    if importlib.util.find_spec("rerun") is None:
+        print("viewer: not started (rerun-sdk missing: pip install 'safemimic[viz]')", flush=True)
+        return False
+    return True
 
 
 def _start(name: str, argv: list[str], run_dir: Path, env: dict[str, str] | None = None) -> Child:
@@ -269,6 +285,10 @@ def _watch_stack(args: argparse.Namespace, site: Site, children: list[Child], wa
             url = json.loads(ready)["url"]
             origin = f"${TOKEN_ENV}" if os.environ.get(TOKEN_ENV) else token
             print(f"\nconsole: {url}/   (writes: Authorization: Bearer {origin})", flush=True)
+        if "viewer" in by_name:
+            shown = _wait_for_log(by_name["viewer"], '{"event": "ready"', stop)
+            if shown:
+                print(f"viewer: {json.loads(shown)['url']}   (Rerun web viewer: robot, person, barriers)", flush=True)
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not watch.all_up() and time.monotonic() < deadline and not stop.is_set() and not _exited(children):
             _print_health(watch)

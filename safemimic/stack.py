@@ -151,6 +151,14 @@ def command(name: str, site: Site, bus_flags: list[str] | None = None) -> list[s
     return ["safemimic", spec.name, *flags, *spec.role_args(site)]
 
 
+def viewer_command(site: Site, web_port: int, grpc_port: int) -> list[str]:
+    """The live viewer (``safemimic viewer``, the ``viewer`` identity: subscriptions only), serving
+    Rerun's web viewer on ``web_port`` (its data on ``grpc_port``). Not in :data:`SERVICES`: it
+    holds no liveliness token and nothing depends on it."""
+    return ["safemimic", "viewer", *client_flags(site.router, site.certs), "--host", site.api_host,
+            "--web-port", str(web_port), "--grpc-port", str(grpc_port)]
+
+
 def health_command(name: str, router: str, certs: str | None = None) -> list[str]:
     """The command that exits 0 while service ``name``'s liveliness token is present."""
     return ["safemimic", "health", SERVICE_BY_NAME[name].token, *client_flags(router, certs)]

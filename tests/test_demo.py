@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -18,7 +19,9 @@ from tests.conftest import MOCAP_DIR
 pytestmark = pytest.mark.integration
 
 SUMMARY_KEYS = {"commands_published", "min_h_self", "min_h_human", "modes", "latency_ms_p99", "nan_count"}
-CHILDREN = ("router", *(spec.name for spec in SERVICES))
+#: the live Rerun viewer too where rerun-sdk (the viz extra, in dev) is installed
+CHILDREN = ("router", *(spec.name for spec in SERVICES),
+            *(("viewer",) if importlib.util.find_spec("rerun") is not None else ()))
 
 
 def _pids(output: str) -> dict[str, int]:

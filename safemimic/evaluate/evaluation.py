@@ -98,8 +98,9 @@ def evaluate(conf: StackConfig, seconds: float | None = None, camera: CameraMode
                       conf.perception.placement)
 
 
-def write_outputs(evaluation: Evaluation, out: Path) -> dict[str, Any]:
-    """Write metrics.json, contacts.json and the three figures into ``out``; the metrics."""
+def write_outputs(evaluation: Evaluation, out: Path, rrd: Path | None = None) -> dict[str, Any]:
+    """Write metrics.json, contacts.json and the three figures into ``out`` (and with ``rrd`` both
+    runs as a Rerun recording there: :mod:`safemimic.evaluate.recording`); the metrics."""
     from safemimic.evaluate.figures import plot_barriers, plot_joints  # matplotlib: only when writing
     from safemimic.evaluate.snapshot import render_snapshot
 
@@ -116,4 +117,8 @@ def write_outputs(evaluation: Evaluation, out: Path) -> dict[str, Any]:
     plot_joints(e.cbf, e.nominal, e.person, e.kinematics.joint_names, out / "joints.png", title)
     plot_barriers(e.cbf, e.nominal, e.conf.safety.phi, out / "barriers.png", title)
     render_snapshot(e.conf, e.kinematics, e.human, e.person, e.cbf, e.nominal, out / "snapshot.png")
+    if rrd is not None:
+        from safemimic.evaluate.recording import write_rrd  # rerun-sdk (the viz extra): only when asked
+
+        write_rrd(e, rrd)
     return metrics

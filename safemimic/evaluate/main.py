@@ -9,6 +9,8 @@ Writes into ``--out``: ``metrics.json`` (:mod:`safemimic.evaluate.metrics`), ``c
 true, perceived, without and with the CBF), ``barriers.png`` (every monitored h over time) and
 ``snapshot.png`` (MuJoCo at the worst moment). With ``--suite``: one such folder per clip and
 placement plus ``summary.json``, ``summary.md`` and ``summary.png`` (:mod:`safemimic.evaluate.suite`).
+``--rrd [FILE.rrd]`` adds both runs as one Rerun recording (:mod:`safemimic.evaluate.recording`;
+in a suite one ``recording.rrd``, or FILE's name, in each run's folder).
 Exit status 0, 1 when some run of a suite failed, 2 for unusable input.
 """
 
@@ -30,6 +32,8 @@ from services.safety.kinematics import KinematicsError
 from shared.config import ConfigError
 from shared.robot_spec import RobotSpecError
 
+#: The recording's file name when --rrd is given without one (and in each run folder of a suite).
+RRD_NAME = "recording.rrd"
 #: What makes an input unusable (exit 2 for a single run, a failed row in a suite).
 INPUT_ERRORS = (ConfigError, SourceUnavailable, RobotSpecError, KinematicsError, SimModelError, ValueError)
 
@@ -100,14 +104,39 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
                         help="evaluate this long (default: the whole recording / one period of the scenario; "
                         "longer loops it)")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for the results")
+    parser.add_argument("--rrd", nargs="?", const=RRD_NAME, metavar="FILE.rrd",
+                        help="also write both runs as a Rerun recording (needs the viz extra; open it with "
+                        f"'rerun FILE.rrd'); without a value {RRD_NAME} in --out; with --suite one file of that "
+                        "name in each run's folder")
     parser.add_argument("--config", "-c", metavar="FILE", help="stack configuration YAML (default: shipped)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
+def rrd_path(rrd: str | None, out: Path, suite: bool) -> Path | None:
+    """Where a run's recording goes: None without --rrd; in a suite the name inside ``out`` (a run's
+    folder); a bare file name inside ``out``; else the path as given."""
+    if rrd is None:
+        return None
+    path = Path(rrd).expanduser()
+    if path.suffix != ".rrd":
+        raise ValueError(f"--rrd {rrd}: a Rerun recording's name ends in .rrd")
+    return out / path.name if suite or path.parent == Path(".") else path
+
+
+def _check_rerun(args: argparse.Namespace) -> None:
+    if getattr(args, "rrd", None) is not None:
+        import importlib.util
+
+        if importlib.util.find_spec("rerun") is None:
+            raise ValueError("--rrd needs rerun-sdk: pip install 'safemimic[viz]'")
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         camera = camera_model(args)
+        rrd_path(args.rrd, Path(args.out), args.suite is not None)
+        _check_rerun(args)
     except ValueError as exc:
         print(f"safemimic evaluate: {exc}", file=sys.stderr)
         return 2
@@ -124,10 +153,12 @@ def run(args: argparse.Namespace) -> int:
     except INPUT_ERRORS as exc:
         print(f"safemimic evaluate: {exc}", file=sys.stderr)
         return 2
-    metrics = write_outputs(evaluation, Path(args.out))
+    rrd = rrd_path(args.rrd, Path(args.out), suite=False)
+    metrics = write_outputs(evaluation, Path(args.out), rrd)
     print(f"{evaluation.source.name}: {metrics['input']['seconds']:g} s, "
           f"{metrics['input']['control_steps']} control steps, robot model {metrics['input']['robot_model']}, "
           f"camera latency {metrics['input']['latency_ms']:g} ms")
     print(summary_table(metrics))
-    print(f"wrote {args.out}/metrics.json, contacts.json, joints.png, barriers.png, snapshot.png")
+    print(f"wrote {args.out}/metrics.json, contacts.json, joints.png, barriers.png, snapshot.png"
+          + (f"; recording {rrd} (open: rerun {rrd})" if rrd is not None else ""))
     return 0

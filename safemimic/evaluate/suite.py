@@ -52,7 +52,7 @@ def _run_one(index: int, clip: str, placement: str, args: dict[str, Any], camera
              progress: Any) -> dict[str, Any]:
     """Worker: evaluate one clip at one placement and write its folder; the summary row."""
     from safemimic.evaluate.evaluation import evaluate, evaluation_config, write_outputs
-    from safemimic.evaluate.main import INPUT_ERRORS
+    from safemimic.evaluate.main import INPUT_ERRORS, rrd_path
 
     row: dict[str, Any] = {"clip": Path(clip).stem, "placement": placement}
 
@@ -63,7 +63,8 @@ def _run_one(index: int, clip: str, placement: str, args: dict[str, Any], camera
     try:
         conf = evaluation_config(clip, None, placement, args["robot_model"], args["config"])
         evaluation = evaluate(conf, args["seconds"], camera, report)
-        metrics = write_outputs(evaluation, Path(out) / f"{row['clip']}-{placement}")
+        folder = Path(out) / f"{row['clip']}-{placement}"
+        metrics = write_outputs(evaluation, folder, rrd_path(args["rrd"], folder, suite=True))
     except INPUT_ERRORS as exc:
         return {**row, "error": str(exc)}
     return {**row, **{key: metrics[key] for key in ("cbf", "nominal", "input")}}
@@ -169,7 +170,8 @@ def run_suite(args: argparse.Namespace, camera: CameraModel) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tasks = [(str(clip), placement) for clip in clips for placement in placements]
-    options = {"robot_model": args.robot_model, "config": args.config, "seconds": args.seconds}
+    options = {"robot_model": args.robot_model, "config": args.config, "seconds": args.seconds,
+               "rrd": getattr(args, "rrd", None)}
     jobs = min(args.jobs or os.cpu_count() or 1, len(tasks))
     bar = None if args.quiet else ProgressBar(1000, f"evaluate {len(tasks)} runs ({jobs} jobs)")
     fractions = [0.0] * len(tasks)

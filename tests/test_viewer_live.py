@@ -1,0 +1,50 @@
+"""The live viewer's scene on a real Zenoh bus: it draws what arrives, survives garbage and silence."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+rr = pytest.importorskip("rerun", reason="the viz extra (rerun-sdk) is not installed")
+
+from services.viewer.live import LiveScene  # noqa: E402
+from services.viewer.robot_mesh import RobotMesh  # noqa: E402
+from shared.bus import Bus  # noqa: E402
+from shared.config import BusConfig, load_config  # noqa: E402
+from shared.messages import JointState, SafetyMode, SafetyStatus  # noqa: E402
+from shared.robot_spec import configured_robot_spec  # noqa: E402
+from tests.conftest import free_port  # noqa: E402
+from tests.test_viewer_recording import rrd_rows  # noqa: E402
+
+
+def test_scene_draws_new_messages_counts_garbage_and_reports_a_silent_publisher(tmp_path: Path) -> None:
+    port = free_port()
+    listen = BusConfig(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    connect = BusConfig(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    spec = configured_robot_spec(load_config())
+    mesh = RobotMesh(spec)
+    rec = rr.RecordingStream("test_viewer", send_properties=False)
+    rec.save(tmp_path / "live.rrd")
+    with Bus(listen, "test", "viewer") as vbus, Bus(connect, "test", "executor") as pbus:
+        scene = LiveScene(vbus, rec, mesh, mesh.capsule_radii, phi=0.02, near_m=0.02)
+        joints, status = pbus.publisher("robot/joint_state"), pbus.publisher("safety/status")
+        time.sleep(0.5)  # the subscription reaches the publisher
+        for k in range(3):
+            joints.put(JointState(stamp=time.monotonic(), q=np.full(8, 0.1 * k), dq=np.zeros(8)))
+            status.put(SafetyStatus(stamp=time.monotonic(), mode=SafetyMode.ACTIVE, min_h_self=0.01, min_h_human=None,
+                                    active_constraints=1, total_constraints=63, qp_solve_time_ms=0.01, step_time_ms=0.1))
+            pbus.put_raw("robot/joint_state", b"\x93garbage")
+            time.sleep(0.1)
+            scene.frame()
+        assert scene.received["robot/joint_state"] == 3 and scene.received["safety/status"] == 3
+        assert vbus.dropped["robot/joint_state"] >= 1  # counted, never drawn, never raised
+        assert scene.errors == {} and scene.logged["robot"] == 3 and scene.logged["binding"] == 3
+        scene.frame(time.monotonic() + 5.0)  # nothing new for 5 s: reported stale, the last picture stays
+        assert "robot/joint_state" in scene.stats()["stale"]
+    rec.flush()
+    rows = rrd_rows(tmp_path / "live.rrd")
+    assert rows["/robot/cbf/capsules"] == 3 and rows["/joints/left_elbow_joint/q"] == 3
+    assert rows["/barriers/cbf/min_h/self"] == 3 and rows["/viewer/log"] >= 1
