@@ -1,7 +1,7 @@
 """Benchmark: the paper's Table I on this CPU, per collision geometry (issue 10, paper §IV-B).
 
 For spheres (k = 0, 1), boxes (bounding boxes of the capsules, edges rounded by r/2) and capsules
-(``services.safety.geometry``), on the paper's worst case, the ``paper72`` pair preset: every
+(``services.safety.barriers``), on the paper's worst case, the ``paper72`` pair preset: every
 robot capsule against every capsule of the person beside the robot (49), the 14 non-adjacent self
 pairs and 9 pairs with a second person in front, i.e. 72 capsule pairs; the sphere decomposition
 turns each into every pair of their spheres. Scene, q_nom trajectory, timing (round-robin blocks
@@ -20,7 +20,7 @@ Per geometry (one row of ``geometry.json``):
 Safety equivalence (``equivalence``): the paper's two scenarios (the perception pipeline on the
 scripted person beside the robot, q_nom retargeted, the filter stepped at the control rate, no
 simulator), after a lead-in at home without a person: every geometry keeps its own h ≥ −1 mm
-(``keeps_own_h``; sharp boxes did not beside the person, see :mod:`services.safety.geometry.boxes`);
+(``keeps_own_h``; sharp boxes did not beside the person, see :mod:`services.safety.barriers.boxes`);
 how conservative each is: its tracking error ``tracking_rms_rad`` (RMS of q_cbf − q_nom), its
 deviation from the capsule run ``vs_capsule_rms_rad``, the capsule clearance along its motion.
 """

@@ -1,6 +1,6 @@
 """The paper's Fig. 4 for this robot: the four collision models with one line per CBF constraint.
 
-Spheres (k = 0), spheres (k = 1), boxes and capsules (:mod:`services.safety.geometry`) fitted to
+Spheres (k = 0), spheres (k = 1), boxes and capsules (:mod:`services.safety.barriers`) fitted to
 the G1 and to the person of the side-by-side arm raise, at the moment ``T_SHOW`` s into the
 scenario, the robot where the capsule CBF put it (:func:`bench.geometry.track`). The robot is the
 executor's MuJoCo model; robot colliders are drawn translucent blue, the person's orange, and
@@ -31,9 +31,9 @@ import numpy as np  # noqa: E402
 from bench.geometry import GEOMETRIES, configured, scenario_human, title, track  # noqa: E402
 from services.executor.sim import PDGains, SimRobot  # noqa: E402
 from services.safety.assembly import build_pipeline  # noqa: E402
-from services.safety.geometry.base import CollisionGeometry  # noqa: E402
-from services.safety.geometry.boxes import BoxBarrier  # noqa: E402
-from services.safety.geometry.spheres import SphereBarrier  # noqa: E402
+from services.safety.barriers.pairs import CollisionGeometry  # noqa: E402
+from services.safety.barriers.boxes import BoxBarrier  # noqa: E402
+from services.safety.barriers.spheres import SphereBarrier  # noqa: E402
 from services.safety.kinematics import RobotKinematics  # noqa: E402
 from services.safety.pairs import N_ROBOT  # noqa: E402
 from services.safety.human_memory import external_capsules  # noqa: E402

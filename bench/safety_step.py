@@ -45,7 +45,7 @@ import numpy as np
 
 from bench.common import percentiles_us
 from services.safety.assembly import build_pipeline, make_geometry
-from services.safety.barrier import CapsuleBarrier
+from services.safety.barriers.capsules import CapsuleBarrier
 from services.safety.filter import FilterParams, SafetyFilter
 from services.safety.pairs import N_ROBOT, PairSet, sized_pair_set
 from shared.config import load_config

@@ -150,7 +150,7 @@ class PairGroup(str, Enum):
 
 
 class GeometryName(str, Enum):
-    """Collision geometry of the CBF rows (paper §IV-B, Table I; services.safety.geometry)."""
+    """Collision geometry of the CBF rows (paper §IV-B, Table I; services.safety.barriers)."""
 
     CAPSULE = "capsule"
     SPHERES = "spheres"
@@ -173,8 +173,11 @@ class SafetyConfig(_Section):
     sphere_k: int = Field(default=1, ge=0, le=3, description="spheres: levels of subsampling k (each halves the spacing)")
     human_velocity_term: bool = True
     human_lookahead_s: float = Field(
-        default=0.04, ge=0, le=1,
-        description="an approaching person is anticipated this far ahead (s): one camera frame plus the pipeline latency",
+        default=0.11, ge=0, le=1,
+        description="an approaching person is anticipated this far ahead (s): the delay from camera to command, as "
+        "ISO/TS 15066 separation monitoring counts v_h·(T_r + T_s): camera latency 0.060 (exposure, readout, pose "
+        "inference, transport) + one 30 Hz frame of hold 0.033 + the point filter's lag ≤ 0.016 (EMA τ = 0.03 s "
+        "at 30 Hz; One Euro ≈ 0.009) ≈ 0.11",
     )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
     lost_human_hold_s: float = Field(
@@ -182,7 +185,11 @@ class SafetyConfig(_Section):
         description="a capsule perception stops seeing is held this long (s) from its last valid one, imitation stopped",
     )
     joint_state_timeout_s: float = Field(default=0.1, gt=0, le=60)
-    relax_penalty: float = Field(default=1e4, gt=0)
+    relax_penalty: float = Field(
+        default=100.0, ge=1, le=1000,
+        description="when the rows are infeasible: the cost of an already-violated hard row's slack (a self pair or "
+        "joint barrier, which must not happen) relative to a person row's (1) in the least-violation stage",
+    )
     u_min: NegativeJointVector | None = Field(default=None, description="lower velocity bound per joint (rad/s); null: −u_max")
     enabled_pair_groups: list[PairGroup] = Field(
         default_factory=lambda: list(PairGroup), description="pair groups whose CBF rows are enforced"

@@ -19,6 +19,7 @@ from pydantic import (
     ConfigDict,
     Field,
     PlainSerializer,
+    StringConstraints,
     field_validator,
     model_validator,
 )
@@ -190,6 +191,13 @@ class SafetyStatus(Message):
     executor_holding: bool = Field(default=False, description="the executor reports its commands stale")
     resyncing: bool = Field(default=False, description="q_cbf is moving (rate-limited) to a displaced robot")
     human_lost: bool = Field(default=False, description="capsules of a person that vanished are held")
+    relaxed_pairs: list[Annotated[str, StringConstraints(max_length=64)]] = Field(
+        default_factory=list, max_length=256,
+        description="robot–person pairs that gave way since the previous status (mode relaxed): their rows held only A u ≥ min(b, 0)",
+    )
+    person_intrusion: bool = Field(
+        default=False, description="since the previous status, a person capsule was inside the margin (h < 0) while the robot retreated or held"
+    )
     watchdog_trips: dict[str, int] = Field(
         default_factory=dict, description="times each watchdog tripped: human_state, human_source, human_lost, "
         "joint_state, executor_command, resync"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.safety.assembly import build_pipeline
-from services.safety.barrier import DISABLED_B, CapsuleBarrier
+from services.safety.barriers.capsules import DISABLED_B, CapsuleBarrier
 from services.safety.pairs import N_ROBOT, make_pair_set, preset_pair_set
 from shared.config import load_config
 
@@ -132,7 +132,7 @@ def test_default_pipeline_is_clear_at_home() -> None:
 
 def test_compiled_kernel_matches_vectorised_geometry() -> None:
     """The numba pair loop equals shared.geometry on random, parallel and degenerate segments."""
-    from services.safety.barrier_kernel import pair_distances
+    from services.safety.barriers.kernel import pair_distances
     from shared.geometry import segment_closest_points
 
     rng = np.random.default_rng(21)

@@ -6,9 +6,12 @@
 - ``min_h_self`` / ``min_h_human``: the smallest barrier value h (m) over the self pairs / the
   robot–human pairs, over every control step (null: no such pair was ever evaluated);
 - ``frames_h_negative``: control steps at which some monitored h < 0;
-- ``contacts_robot_robot`` / ``contacts_robot_human``: control steps at which MuJoCo found the
-  robot's own collision geometry touching itself (non-adjacent bodies, not already touching at
-  home) / the person's capsules;
+- ``contacts_robot_robot``: control steps at which MuJoCo found the simulated robot's own
+  collision geometry touching itself (non-adjacent bodies; a pair touching at home once it presses
+  more than 1 mm deeper). The person never pushes the robot (its capsules collide with nothing),
+  so these come from the robot's own motion only;
+- ``contacts_robot_human``: control steps at which some robot surface penetrates the *perceived*
+  person's capsules (what the filter saw, drawn translucent in the snapshot);
 - ``rms_tracking``: RMS of q_cbf − q_nom over every step and joint (rad);
 - ``rms_tracking_free``: the same over the steps at which no constraint binds in the CBF run (no
   capsule pair, no joint barrier) — the same steps for both runs, so the two numbers compare

@@ -10,8 +10,8 @@ monitors):
                                                       person's capsule has no Jacobian)
 
 with n the unit normal from the person's (or the other link's) closest point toward the robot's
-(:mod:`services.safety.barrier`). A negative rate is the robot closing that pair. The rows come
-from the safety service's own :class:`~services.safety.barrier.CapsuleBarrier` (φ = 0), so the
+(:mod:`services.safety.barriers.capsules`). A negative rate is the robot closing that pair. The rows come
+from the safety service's own :class:`~services.safety.barriers.capsules.CapsuleBarrier` (φ = 0), so the
 geometry is exactly the one the filter protects, now at the robot's real pose and the person's
 real place.
 """
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.safety.assembly import robot_radii
-from services.safety.barrier import CapsuleBarrier
+from services.safety.barriers.capsules import CapsuleBarrier
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import PairSet, make_pair_set
 from shared.config import StackConfig

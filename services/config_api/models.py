@@ -304,6 +304,8 @@ class StatusResponse(_View):
     config_version: int = Field(description="the API's current configuration version")
     backend: str | None
     dropped: dict[str, int]
+    relaxed_pairs: list[str] = Field(default_factory=list, description="robot–person pairs that gave way (mode relaxed)")
+    person_intrusion: bool | None = Field(default=None, description="a person capsule inside the margin while the robot retreats")
 
     @classmethod
     def build(cls, status: Received[SafetyStatus] | None, human: Received[HumanState] | None,
@@ -328,6 +330,7 @@ class StatusResponse(_View):
                        "resyncing": s.resyncing},
             watchdog_trips=s.watchdog_trips,
             config_version=config_version, backend=s.backend, dropped=s.dropped,
+            relaxed_pairs=s.relaxed_pairs, person_intrusion=s.person_intrusion,
         )
 
 

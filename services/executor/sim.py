@@ -333,6 +333,9 @@ class SimRobot:
         self._role[self._human_geom.ravel()] = _HUMAN
         self._capsule_of_geom = {int(g): c for row in self._human_geom for g, c in zip(row, CAPSULE_NAMES)}
         self._human_placed = np.zeros((self.people, len(CAPSULE_NAMES)), dtype=bool)
+        #: Per person and capsule: segment endpoints (m) and radius, for the distance broad phase.
+        self._human_segments = np.zeros((self.people, len(CAPSULE_NAMES), 2, 3))
+        self._human_radii = np.zeros((self.people, len(CAPSULE_NAMES)))
         self._jacp = np.zeros((3, m.nv))
 
     def _home_geom_pairs(self) -> list[tuple[tuple[str, str], list[tuple[int, int]], float]]:
@@ -437,6 +440,8 @@ class SimRobot:
         if length > _MIN_SIZE:
             mujoco.mju_quatZ2Vec(quat, axis / length)
         self._shape(person, i, max(radius, _MIN_SIZE), max(0.5 * length, _MIN_SIZE))
+        self._human_segments[person, i] = a, b
+        self._human_radii[person, i] = radius
         self.data.mocap_pos[self._human_mocap[person, i]] = 0.5 * (a + b)
         self.data.mocap_quat[self._human_mocap[person, i]] = quat
 
@@ -489,7 +494,8 @@ class SimRobot:
         last step: ``mj_geomDistance`` (no contact forces), with the robot's own velocity at its
         deepest point along the normal, −nᵀ J_p q̇ (n from the person toward the robot).
 
-        A bounding-sphere test comes first (``mj_geomDistance`` has no broad phase of its own).
+        A broad phase comes first (``mj_geomDistance`` has none of its own): a surface geom is
+        examined only if its bounding sphere comes within the capsule's radius of its segment.
         """
         placed = self._human_placed[person]
         if not placed.any() or not len(self.surface_geoms):
@@ -497,8 +503,13 @@ class SimRobot:
         m, d = self.model, self.data
         humans = self._human_geom[person][placed]
         surface = self.surface_geoms
-        gap = np.linalg.norm(d.geom_xpos[humans, None, :] - d.geom_xpos[None, surface, :], axis=2)
-        near = gap <= m.geom_rbound[humans, None] + m.geom_rbound[None, surface]
+        a, b = self._human_segments[person][placed, 0], self._human_segments[person][placed, 1]  # (H, 3)
+        axis = b - a
+        centres = d.geom_xpos[surface]  # (S, 3)
+        along = np.einsum("hsk,hk->hs", centres[None] - a[:, None], axis) / np.maximum((axis * axis).sum(1), 1e-12)[:, None]
+        closest = a[:, None] + np.clip(along, 0.0, 1.0)[..., None] * axis[:, None]
+        gap = np.linalg.norm(centres[None] - closest, axis=2)
+        near = gap <= self._human_radii[person][placed, None] + m.geom_rbound[None, surface]
         found = []
         fromto = np.zeros(6)
         for hi, si in zip(*np.nonzero(near)):

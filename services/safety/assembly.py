@@ -6,10 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.safety.barrier import CapsuleBarrier
+from services.safety.barriers.capsules import CapsuleBarrier
 from services.safety.filter import FilterParams, SafetyFilter
-from services.safety.geometry.base import CollisionGeometry
-from services.safety.geometry.spheres import SphereBarrier, nominal_human
+from services.safety.barriers.pairs import CollisionGeometry
+from services.safety.barriers.spheres import SphereBarrier, nominal_human
 from services.safety.human_memory import external_capsules
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import N_ROBOT, PairSet, preset_pair_set, select_groups
@@ -78,7 +78,7 @@ def make_geometry(conf: StackConfig, pairs: PairSet, kinematics: RobotKinematics
         external = np.tile(nominal_human(conf.human), (pairs.n_external // N_ROBOT, 1))  # per person
         return SphereBarrier(pairs, kinematics.capsule_local, radii, n, conf.safety.sphere_k, external)
     if geometry is GeometryName.BOX:
-        from services.safety.geometry.boxes import BoxBarrier  # coal only where boxes are used
+        from services.safety.barriers.boxes import BoxBarrier  # coal only where boxes are used
 
         return BoxBarrier(pairs, kinematics, radii, n)
     return CapsuleBarrier(pairs, radii, n)

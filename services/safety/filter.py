@@ -4,17 +4,36 @@
     u* = argmin ½ ‖u − u_ref‖²_W  s.t.  A(q_cbf) u ≥ b,  u_lo ≤ u ≤ u_hi
     q_cbf⁺ = q_cbf + Δt u*
 
-with u_lo/u_hi the velocity bounds intersected with the joint limits reachable in one step; u* is
-clipped to them whatever the solver returns, so |q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly.
-If the rows are infeasible (or the solver fails) a relaxed problem with one slack shared by
-every row, min … + ½ ρ σ²  s.t.  A u + σ 1 ≥ b, σ ≥ 0, is solved instead: the smallest uniform
-violation (no row is given up for the others) in n + 1 variables however many rows there are.
-If that fails too the filter holds (u* = 0). The mode says which happened; the output is always finite. A state that is
-already inside a barrier (h < −1 mm: the person moved into the robot faster than it could
-retreat) is reported as RELAXED too: the constraints are not being honoured there.
+A and b stack the rows of every barrier the filter holds (:mod:`services.safety.barriers`: the
+pair barrier of the configured geometry, the robot description's joint barriers, any other),
+each row hard or soft. u_lo/u_hi are the velocity bounds intersected with the joint limits
+reachable in one step; u* is clipped to them whatever the solver returns, so
+|q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly.
 
-The robot description's joint barriers (``joint_barriers``: links the capsules cannot see) add
-one row each: u_j ≥ −γ (q_j − lower_j) or −u_j ≥ −γ (upper_j − q_j).
+**Prioritised relaxation.** When the rows are infeasible together (a person moving into the robot
+faster than it can retreat), every row i gets a slack σ_i ∈ [0, max(b_i, 0)] (A_i u + σ_i ≥ b_i,
+so A_i u ≥ min(b_i, 0): a soft robot–person row may give way but the robot never closes in on
+that capsule; a hard row whose b_i ≤ 0 keeps σ_i = 0 and stays exactly as it was), and two QPs
+are solved in order (a lexicographic solve):
+
+1. least violation: min Σ c_i σ_i (+ ½ε‖u − u_ref‖²_W + ½ε‖σ‖² to make it strictly convex),
+   c_i = 1 for a soft row and ``relax_penalty`` for a hard row that is already violated;
+2. best tracking among the least-violating: min ½‖u − u_ref‖²_W (+ ½ε‖σ‖²) with σ_i ≤ σ_i* of
+   stage 1 (plus a solver tolerance): stage 1's solution is feasible here, so its total
+   violation cannot grow.
+
+*Feasible by construction.* u = 0, σ_i = max(b_i, 0) satisfies every constraint of both stages
+whenever 0 lies in the velocity box, which holds because q_cbf stays within the joint limits and
+u_min ≤ 0 < u_max: row i reads 0 + max(b_i, 0) ≥ b_i, and σ_i's bounds contain max(b_i, 0).
+In particular the hard rows (self pairs, joint barriers) whose b_i ≤ 0 at the step's start
+(they hold: h ≥ 0 ⇔ b = −γ h ≤ 0) are never relaxed; a violated one (b_i > 0, which the hard
+rows prevent from happening) is softened the same way at cost ``relax_penalty``.
+
+Both stages are solved by DAQP whatever ``safety.backend`` is (an active-set solver is exact on
+these small LP-like problems; OSQP's first-order iterations stall on their scaling). If both
+stages fail numerically the filter holds (u* = 0, mode HOLD: q_cbf does not move, no jump);
+if only stage 2 fails, stage 1's u is commanded. The mode says which happened; the output is
+always finite. A state already inside a barrier (h < −1 mm) is reported as RELAXED too.
 
 With ``enforce`` off the rows are still evaluated (h is monitored) but left out of the QP, so
 u* = clip(u_ref) within the bounds: the same integrator without the safety layer (the offline
@@ -27,14 +46,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.safety.barrier import BarrierRows, CapsuleBarrier
+from services.safety.barriers.base import Barrier, RowBlock
+from services.safety.barriers.joints import JointBarrier
+from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
 from shared.messages import SafetyMode
 
-#: upper bound of a slack variable (m/s of barrier rate): effectively unbounded
-_SLACK_MAX = 1e6
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
 VIOLATION_TOL = 1e-3
+#: strict-convexity regularisation of the relaxed stages (weight of ‖σ‖², and of ‖u − u_ref‖² in stage 1)
+_EPS = 1e-4
+#: slack above stage 1's a stage-2 row may take (solver tolerance)
+_SLACK_TOL = 1e-9
+#: a slack above this (m/s of barrier rate) means its row gave way
+RELAXED_TOL = 1e-6
 
 
 @dataclass
@@ -46,7 +71,7 @@ class FilterParams:
     gain: float
     weights: np.ndarray
     u_max: np.ndarray
-    relax_penalty: float
+    relax_penalty: float  # stage-1 cost of an already-violated hard row's slack (a soft row's: 1)
     u_min: np.ndarray | None = None  # lower velocity bound (n,); None: −u_max
     human_lookahead_s: float = 0.0  # T of the human velocity term (s; see barrier.py)
 
@@ -66,7 +91,10 @@ class FilterParams:
 
 @dataclass
 class StepResult:
-    """Outcome of one step: the new q_cbf (n,), u* (n,), mode, barrier rows and solver facts."""
+    """Outcome of one step: the new q_cbf (n,), u* (n,), mode, the pair barrier's rows and solver
+    facts; ``relaxed`` (m,) the pair rows that gave way (their slack > 0; all False unless RELAXED);
+    ``intrusion``: a person capsule is inside the margin (h < 0 on a soft pair row) while the
+    robot retreats from or holds against it (A_i u* ≥ 0)."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -76,36 +104,33 @@ class StepResult:
     active_rows: int
     qp_time_s: float
     qp_status: QPStatus
-
-
-def _joint_barriers(spec, joint_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Joint-barrier rows (k, n) and per row: joint index, sign, bound (sign (q_j − bound) ≥ 0 holds)."""
-    rows = []
-    for joint, (lower, upper) in spec.joint_barriers.items():
-        j = joint_names.index(joint)
-        rows += [(j, 1.0, lower)] if lower is not None else []
-        rows += [(j, -1.0, upper)] if upper is not None else []
-    index, sign, bound = (np.array(v, dtype=float) for v in (zip(*rows) if rows else ((), (), ())))
-    index = index.astype(np.intp)
-    return sign[:, None] * np.eye(len(joint_names))[index], index, sign, bound
+    relaxed: np.ndarray
+    intrusion: bool = False
 
 
 class SafetyFilter:
-    """Holds q_cbf and filters nominal targets through the capsule CBF-QP."""
+    """Holds q_cbf and filters nominal targets through the CBF-QP of its barriers.
 
-    def __init__(self, kinematics, barrier: CapsuleBarrier, params: FilterParams, backend: str = "daqp") -> None:
+    ``barrier`` is the pair barrier (its rows are reported in :class:`StepResult`); the robot
+    description's joint barriers are added after it; ``barriers`` lists everything stacked.
+    """
+
+    def __init__(self, kinematics, barrier: CollisionGeometry, params: FilterParams, backend: str = "daqp") -> None:
         self.kinematics = kinematics
         #: Whether the CBF rows constrain the QP (False: rows only monitored, u* = clip(u_ref)).
         self.enforce = True
         self.barrier = barrier
+        self.barriers: list[Barrier] = [barrier, JointBarrier(kinematics.spec.joint_barriers, kinematics.joint_names)]
         self.params = params
         self.backend_name = backend
         self._qp: QPBackend = make_backend(backend)
-        self._relaxed_qp: QPBackend = make_backend(backend)
+        # the relaxed stages are small, LP-like and badly scaled (costs up to relax_penalty against
+        # ε-regularisation): an active-set solver (DAQP) solves them exactly whatever the backend
+        self._relaxed_qp: QPBackend = make_backend("daqp")
+        self._tracking_qp: QPBackend = make_backend("daqp")
         self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
         self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
-        self._joint_barriers = _joint_barriers(kinematics.spec, kinematics.joint_names)
 
     def reset(self, q: np.ndarray) -> None:
         """Restart integration from configuration ``q`` (e.g. the measured joint state)."""
@@ -113,8 +138,14 @@ class SafetyFilter:
         if q.shape == self.q_cbf.shape and np.isfinite(q).all():
             self.q_cbf = np.clip(q, self.q_min, self.q_max)
 
+    def blocks_at(self, q: np.ndarray) -> list[RowBlock]:
+        """Every barrier's rows at configuration ``q`` (no QP, no state change); the pair rows first."""
+        endpoints, jacobians = self.kinematics.compute(q)
+        p = self.params
+        return [b.constraint_rows(q, endpoints, jacobians, p.gamma, p.phi, p.human_lookahead_s) for b in self.barriers]
+
     def rows_at(self, q: np.ndarray) -> BarrierRows:
-        """The barrier rows at configuration ``q`` (no QP, no state change)."""
+        """The pair barrier's rows at configuration ``q`` (no QP, no state change)."""
         endpoints, jacobians = self.kinematics.compute(q)
         p = self.params
         return self.barrier.evaluate(endpoints, jacobians, p.gamma, p.phi, p.human_lookahead_s)
@@ -123,32 +154,35 @@ class SafetyFilter:
         """One control step towards ``q_nom`` (n,) over ``dt`` seconds."""
         p = self.params
         q = self.q_cbf
-        rows = self.rows_at(q)
+        blocks = self.blocks_at(q)
+        rows: BarrierRows = blocks[0]  # type: ignore[assignment]
         u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - q)
         upper = np.minimum(p.u_max, (self.q_max - q) / dt)
         u_min = -p.u_max if p.u_min is None else p.u_min
         lower = np.minimum(np.maximum(u_min, (self.q_min - q) / dt), upper)
         if self.enforce:
-            joint_rows, index, sign, bound = self._joint_barriers
-            A = np.vstack([rows.A, joint_rows])
-            b = np.concatenate([rows.b, -p.gamma * sign * (q[index] - bound)])
+            A = np.vstack([block.A for block in blocks])
+            b = np.concatenate([block.b for block in blocks])
+            soft = np.concatenate([block.soft for block in blocks])
         else:
-            A, b = rows.A[:0], rows.b[:0]
+            A, b, soft = rows.A[:0], rows.b[:0], rows.soft[:0]
         problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
         u = solution.u
+        relaxed = np.zeros(len(rows.b), bool)
         if u is not None:
             mode = SafetyMode.ACTIVE if solution.active_rows else SafetyMode.NOMINAL
             if self.enforce and rows.min_h_all < -VIOLATION_TOL:
                 mode = SafetyMode.RELAXED
             active = solution.active_rows
         else:
-            relaxed = self._relaxed_qp.solve(self._relaxed(problem))
-            qp_time += relaxed.solve_time_s
-            if relaxed.u is not None:
-                u, mode = relaxed.u[: problem.n], SafetyMode.RELAXED
-                active = int(np.count_nonzero(rows.A @ u - rows.b <= 1e-6))
+            u, slack, seconds = self._relax(problem, soft)
+            qp_time += seconds
+            if u is not None:
+                mode = SafetyMode.RELAXED
+                active = int(np.count_nonzero(A @ u - b <= 1e-6))
+                relaxed = slack[: len(rows.b)] > RELAXED_TOL
             else:
                 u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
         u = np.minimum(np.maximum(u, lower), upper)  # an iterative solver's tolerance never exceeds u_max
@@ -156,18 +190,42 @@ class SafetyFilter:
         if not np.isfinite(q_next).all():
             u, q_next, mode = np.zeros(problem.n), q.copy(), SafetyMode.HOLD
         self.q_cbf = np.minimum(np.maximum(q_next, self.q_min), self.q_max)
+        person = self.enforce & rows.soft & rows.enabled & (np.nan_to_num(rows.h, nan=np.inf) < 0.0)
+        intrusion = bool(person.any() and (rows.A[person] @ u >= -1e-9).all())
         return StepResult(
             q_cbf=self.q_cbf.copy(), u=u, u_ref=u_ref, mode=mode, rows=rows, active_rows=active,
-            qp_time_s=qp_time, qp_status=solution.status,
+            qp_time_s=qp_time, qp_status=solution.status, relaxed=relaxed, intrusion=intrusion,
         )
 
-    def _relaxed(self, problem: QPProblem) -> QPProblem:
-        """[u; σ]: min ½‖u − u_ref‖²_W + ½ρσ²  s.t.  A u + σ 1 ≥ b,  σ ∈ [0, ∞)."""
-        return QPProblem(
-            w=np.append(problem.w, self.params.relax_penalty),
-            u_ref=np.append(problem.u_ref, 0.0),
-            A=np.hstack([problem.A, np.ones((problem.m, 1))]),
-            b=problem.b,
-            lower=np.append(problem.lower, 0.0),
-            upper=np.append(problem.upper, _SLACK_MAX),
-        )
+    def _relax(self, problem: QPProblem, soft: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, float]:
+        """The lexicographic relaxed solve (module docstring): (u or None, slacks (m,), seconds).
+
+        Only rows with b_i > 0 get a slack variable: for the others σ_i ∈ [0, max(b_i, 0)] = {0}.
+        """
+        n, m = problem.n, problem.m
+        loose = np.flatnonzero(problem.b > 0.0)
+        k = len(loose)
+        cap = problem.b[loose]  # σ ∈ [0, b] on the rows that may give way
+        cost = np.where(soft[loose], 1.0, self.params.relax_penalty)
+        columns = np.zeros((m, k))
+        columns[loose, np.arange(k)] = 1.0
+        A = np.hstack([problem.A, columns])
+        lower = np.concatenate([problem.lower, np.zeros(k)])
+        # stage 1: min Σ c σ + ½ε‖u − u_ref‖²_W + ½ε‖σ‖²  (the linear term as ½ε‖σ + c/ε‖²)
+        least = QPProblem(w=np.concatenate([_EPS * problem.w, np.full(k, _EPS)]),
+                          u_ref=np.concatenate([problem.u_ref, -cost / _EPS]), A=A, b=problem.b,
+                          lower=lower, upper=np.concatenate([problem.upper, cap]))
+        first = self._relaxed_qp.solve(least)
+        slack = np.zeros(m)
+        if first.u is None:
+            return None, slack, first.solve_time_s
+        sigma = np.clip(first.u[n:], 0.0, cap)
+        # stage 2: min ½‖u − u_ref‖²_W + ½ε‖σ‖²  with σ ≤ σ* (stage 1's solution is feasible here)
+        tracking = QPProblem(w=np.concatenate([problem.w, np.full(k, _EPS)]),
+                             u_ref=np.concatenate([problem.u_ref, np.zeros(k)]), A=A, b=problem.b,
+                             lower=lower, upper=np.concatenate([problem.upper, np.minimum(sigma + _SLACK_TOL, cap)]))
+        second = self._tracking_qp.solve(tracking)
+        seconds = first.solve_time_s + second.solve_time_s
+        best = second if second.u is not None else first
+        slack[loose] = np.clip(best.u[n:], 0.0, cap)
+        return best.u[:n], slack, seconds

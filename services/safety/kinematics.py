@@ -415,7 +415,7 @@ class RobotKinematics:
         With them a point p fixed in capsule c's body has the Jacobian
         J_p = J_a − [p − a]_× J_ω  (LOCAL_WORLD_ALIGNED), a being the capsule's endpoint ``a``
         whose Jacobian :meth:`compute` returned: what a box witness point needs
-        (:mod:`services.safety.geometry.boxes`). Returns new arrays.
+        (:mod:`services.safety.barriers.boxes`). Returns new arrays.
         """
         model, data = self._model, self._data
         n_cap = len(CAPSULE_NAMES)

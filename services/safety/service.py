@@ -169,6 +169,8 @@ class SafetyService(ScheduledService):
         self._resync_target: np.ndarray | None = None  # measured q that q_nom follows during a resync
         self._last_step_s = 0.0
         self._next_status = -math.inf
+        self._relaxed_since_status: set[str] = set()  # pairs that gave way since the last status
+        self._intrusion_since_status = False
 
         # inputs, fed by the bus (Zenoh threads); everything above exists before the first callback
         self._rejected: Counter[str] = Counter()  # valid messages we refused (config, frame, output)
@@ -285,6 +287,10 @@ class SafetyService(ScheduledService):
         self._last_step_s = time.perf_counter() - started
         self._step_times[self.ticks % _STEP_TIME_WINDOW] = self._last_step_s
         self.ticks += 1
+        if result.relaxed.any():
+            names = pipeline.pairs.names
+            self._relaxed_since_status.update(names[i] for i in np.unique(pipeline.barrier.row_pair[result.relaxed]))
+        self._intrusion_since_status |= result.intrusion
         if now >= self._next_status:
             self._publish_status(now, result, mode)
             status_period = 1.0 / self.conf.safety.status_rate_hz
@@ -388,6 +394,8 @@ class SafetyService(ScheduledService):
                 joint_state_stale=self._joint_state_seen is None or "joint_state" in self._tripped,
                 human_source_lost=self._human_source_lost,
                 human_lost=self._memory.lost,
+                relaxed_pairs=sorted(self._relaxed_since_status)[:256],
+                person_intrusion=self._intrusion_since_status,
                 executor_holding="executor_command" in self._tripped,
                 resyncing=self._resync_target is not None,
                 watchdog_trips=dict(self.watchdog_trips),
@@ -396,6 +404,8 @@ class SafetyService(ScheduledService):
                 backend=self.pipeline.filter.backend_name,
             )
         )
+        self._relaxed_since_status.clear()
+        self._intrusion_since_status = False
 
     def dropped(self) -> dict[str, int]:
         """Invalid or refused messages per topic: undecodable, failing callbacks, rejected."""

@@ -225,6 +225,9 @@ function onStatus(status) {
   // tripped watchdogs now, e.g. "human_stale, executor_holding"; "ok" when none
   const tripped = Object.entries(status.watchdogs || {}).filter(([, on]) => on).map(([name]) => name);
   $("watchdogs").textContent = status.available ? (tripped.join(", ") || "ok") : "–";
+  // robot–person pairs that gave way (relaxed), and a person inside the margin while the robot retreats
+  $("relaxed-pairs").textContent = status.available ? ((status.relaxed_pairs || []).join(", ") || "none") : "–";
+  $("intrusion").textContent = status.available ? (status.person_intrusion ? "yes: the robot retreats" : "no") : "–";
   $("applied-version").textContent = status.applied_config_version === null ? "–" : "v" + status.applied_config_version;
   if (!status.available) return;
   samples.push({ t: performance.now() / 1000, hSelf: status.h_min_self, hHuman: status.h_min_human, solve: status.solve_time_ms, mode: status.mode });

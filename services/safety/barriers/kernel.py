@@ -1,7 +1,7 @@
 """Compiled (numba) inner loops of the capsule barrier: one pass over the monitored pairs.
 
 The math is the same as ``shared.geometry.segment_closest_points`` (Ericson §5.1.9, cross-product
-form, three clamped steps) and ``services.safety.barrier`` (eqs. 4–7), written as scalar loops
+form, three clamped steps) and ``services.safety.barriers.capsules`` (eqs. 4–7), written as scalar loops
 so that a 72-pair step costs a few microseconds instead of ~100 numpy calls. Tests check both
 kernels against the vectorised geometry and against finite differences.
 """

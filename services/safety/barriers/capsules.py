@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.safety.geometry.base import DISABLED_B, BarrierRows, CollisionGeometry, swept_witness_points
+from services.safety.barriers.pairs import DISABLED_B, BarrierRows, CollisionGeometry, swept_witness_points
 from services.safety.pairs import N_ROBOT, PairSet
 
 __all__ = ["DISABLED_B", "BarrierRows", "CapsuleBarrier"]

@@ -14,7 +14,7 @@ a point within r of the axis lies within √(r² + δ²/4) of the nearest centre
 contain the capsule and h ≥ 0 for every sphere pair keeps the capsules apart too. The price is
 conservatism: ρ/r ≤ √2 at level 0, ≤ 1.118 at level 1, ≤ 1.031 at level 2.
 
-Row of a sphere pair (i, j) (the capsule rows of :mod:`services.safety.barrier` for zero-length
+Row of a sphere pair (i, j) (the capsule rows of :mod:`services.safety.barriers.capsules` for zero-length
 segments, computed by the same kernel):
 
     h = ‖c_i − c_j‖ − (ρ_i + ρ_j + φ),   ∂h/∂q = nᵀ (J_ci − J_cj),   J_c = (1 − λ) J_a + λ J_b,
@@ -35,7 +35,7 @@ import numpy as np
 
 from services.perception.capsules import capsule_radii
 from services.perception.synthetic import Body
-from services.safety.geometry.base import BarrierRows, CollisionGeometry, swept_witness_points
+from services.safety.barriers.pairs import BarrierRows, CollisionGeometry, swept_witness_points
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.config import HumanConfig
 from shared.names import CAPSULE_NAMES

@@ -49,7 +49,7 @@ by the envelope theorem (the witness points held fixed in their bodies); J_a is 
 Jacobian of the capsule's endpoint a and J_ω its body's angular Jacobian
 (:meth:`~services.safety.kinematics.RobotKinematics.capsule_frames`). An external witness point
 moves with the capsule, v_p = (1 − λ) v_a + λ v_b, λ its position along the axis. The rows come
-from the shared kernel :func:`~services.safety.barrier_kernel.pair_rows`, the witness points
+from the shared kernel :func:`~services.safety.barriers.kernel.pair_rows`, the witness points
 being zero-length segments with those Jacobians and velocities.
 """
 
@@ -58,8 +58,8 @@ from __future__ import annotations
 import coal
 import numpy as np
 
-from services.safety.barrier_kernel import pair_rows
-from services.safety.geometry.base import BarrierRows, CollisionGeometry
+from services.safety.barriers.kernel import pair_rows
+from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import N_ROBOT, PairSet
 

@@ -12,10 +12,10 @@ same inputs into the same output:
 
   with p_A, p_B the witness points (closest points) of the two colliders, n = (p_A − p_B)/‖·‖ the
   unit normal, ρ the colliders' sphere-swept radii (0 for a box) and a = max(nᵀ v_pB, 0) the
-  approach speed of an external collider (see :mod:`services.safety.barrier`). By the envelope
+  approach speed of an external collider (see :mod:`services.safety.barriers.capsules`). By the envelope
   theorem the witness points are held fixed in their bodies when differentiating, so a witness
   point's Jacobian is that of a body-fixed point. Every backend builds its rows with the same
-  compiled kernel (:func:`services.safety.barrier_kernel.pair_rows`) over a stack of *segments*
+  compiled kernel (:func:`services.safety.barriers.kernel.pair_rows`) over a stack of *segments*
   whose endpoints carry point Jacobians: a capsule's own segment, a sphere's centre or a box's
   witness point as a zero-length segment.
 
@@ -25,13 +25,14 @@ h = NaN, so the QP keeps a fixed size.
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
-from services.safety.barrier_kernel import pair_distances, pair_rows
+from services.safety.barriers.base import Barrier, RowBlock
+from services.safety.barriers.kernel import pair_distances, pair_rows
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.geometry import EPS_NORMAL, safe_normal, segment_closest_points
 
@@ -40,12 +41,10 @@ DISABLED_B = -1e9
 
 
 @dataclass
-class BarrierRows:
-    """CBF rows for one step: ``A`` (m, n), ``b`` (m,), barrier values ``h`` (m,, NaN if disabled)."""
+class BarrierRows(RowBlock):
+    """Pair rows for one step: ``A`` (m, n), ``b`` (m,), barrier values ``h`` (m,, NaN if disabled),
+    ``soft`` = the robot–person rows (self rows are hard)."""
 
-    A: np.ndarray
-    b: np.ndarray
-    h: np.ndarray
     distance: np.ndarray
     enabled: np.ndarray
     is_self: np.ndarray
@@ -66,7 +65,7 @@ def swept_witness_points(segments: np.ndarray, radii: np.ndarray, first: np.ndar
     return np.stack([closest.p - radii[first, None] * normal, closest.q + radii[second, None] * normal], axis=1)
 
 
-class CollisionGeometry(ABC):
+class CollisionGeometry(Barrier):
     """Colliders fitted to the robot and external capsules; the CBF rows of every monitored pair.
 
     Holds the capsule stack ``[robot_0 … robot_6, external_0 … external_{E−1}]`` (endpoints,
@@ -154,8 +153,8 @@ class CollisionGeometry(ABC):
         lookahead: float,
     ) -> BarrierRows:
         """Rows of the sphere-swept segments ``segments`` (S, 2, 3) with ``radii`` (S,): closest
-        points, h and normals (:func:`~services.safety.barrier_kernel.pair_distances`), then
-        A and b (:func:`~services.safety.barrier_kernel.pair_rows`). The first ``n_robot``
+        points, h and normals (:func:`~services.safety.barriers.kernel.pair_distances`), then
+        A and b (:func:`~services.safety.barriers.kernel.pair_rows`). The first ``n_robot``
         segments are the robot's, with endpoint Jacobians ``jacobians`` (n_robot, 2, 3, n); the
         others are external, with endpoint ``velocities`` (S, 2, 3). Row i pairs segment
         ``first[i]`` (robot) with ``second[i]``. A zero-length segment is a sphere."""
@@ -181,4 +180,9 @@ class CollisionGeometry(ABC):
             min_h_all = float(h[enabled].min()) if enabled.any() else float("inf")
         else:
             min_h_all = float(h.min()) if len(h) else float("inf")
-        return BarrierRows(A=A, b=b, h=h, distance=distance, enabled=enabled, is_self=self._row_is_self, min_h_all=min_h_all)
+        return BarrierRows(A=A, b=b, soft=~self._row_is_self, h=h, distance=distance, enabled=enabled,
+                           is_self=self._row_is_self, min_h_all=min_h_all)
+
+    def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
+                        lookahead: float) -> BarrierRows:
+        return self.evaluate(endpoints, jacobians, gamma, phi, lookahead)

@@ -1,0 +1,51 @@
+"""The barrier interface: every kind of CBF row is one class under :class:`Barrier` (like mink's limits).
+
+A barrier turns the robot's state at the start of a step into linear rows on the joint velocity u,
+
+    A u ≥ b        (A (m, n), b (m,)),
+
+each with a priority (:class:`RowBlock.soft`):
+
+- **hard** rows (joint barriers, self-collision pairs) are always honoured; one that is already
+  violated at the step's start (b_i > 0 although u = 0 must satisfy it: it must not happen) is
+  softened like a soft row, at a much higher cost;
+- **soft** rows (robot–person pairs) may give way when the rows are infeasible together, each by
+  its own slack σ_i ∈ [0, max(b_i, 0)], i.e. never below A_i u ≥ min(b_i, 0): at worst the robot
+  keeps its distance to that person capsule, it never closes in.
+
+:class:`~services.safety.filter.SafetyFilter` stacks the blocks of any list of barriers and
+solves one QP over all of them; it knows no barrier kind.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+
+@dataclass
+class RowBlock:
+    """One barrier's rows for one step: ``A`` (m, n), ``b`` (m,), ``soft`` (m,) bool (True: may give
+    way down to A_i u ≥ min(b_i, 0)), ``h`` (m,) m the barrier values (NaN: not a distance)."""
+
+    A: np.ndarray
+    b: np.ndarray
+    soft: np.ndarray
+    h: np.ndarray
+
+
+class Barrier(ABC):
+    """A kind of CBF row. Subclasses name themselves (:attr:`name`) and build their rows."""
+
+    #: The barrier kind (``safety.geometry`` names for pair barriers, ``joint`` for joint barriers).
+    name: ClassVar[str]
+
+    @abstractmethod
+    def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
+                        lookahead: float) -> RowBlock:
+        """Rows at joint angles ``q`` (n,) rad whose forward kinematics gave the robot capsules'
+        ``endpoints`` (7, 2, 3) m and ``jacobians`` (7, 2, 3, n); ``gamma`` (1/s) the CBF rate,
+        ``phi`` (m) the distance margin, ``lookahead`` (s) the human velocity term's T."""

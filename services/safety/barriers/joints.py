@@ -1,0 +1,37 @@
+"""Joint barriers of the robot description (``joint_barriers``: links the capsules cannot see).
+
+One hard row per bound, h_j = sign (q_j − bound) ≥ 0:
+
+    lower bound:  u_j ≥ −γ (q_j − lower_j)         upper bound:  −u_j ≥ −γ (upper_j − q_j)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from services.safety.barriers.base import Barrier, RowBlock
+
+
+class JointBarrier(Barrier):
+    """Rows keeping joints inside the robot description's barrier bounds (rad), all hard."""
+
+    name = "joint"
+
+    def __init__(self, bounds: Mapping[str, tuple[float | None, float | None]], joint_names: tuple[str, ...]) -> None:
+        rows = []
+        for joint, (lower, upper) in bounds.items():
+            j = joint_names.index(joint)
+            rows += [(j, 1.0, lower)] if lower is not None else []
+            rows += [(j, -1.0, upper)] if upper is not None else []
+        index, sign, bound = (np.array(v, dtype=float) for v in (zip(*rows) if rows else ((), (), ())))
+        self.index = index.astype(np.intp)
+        self.sign, self.bound = sign, bound
+        self._A = sign[:, None] * np.eye(len(joint_names))[self.index]
+        self._soft = np.zeros(len(self.index), bool)
+
+    def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
+                        lookahead: float) -> RowBlock:
+        h = self.sign * (q[self.index] - self.bound)
+        return RowBlock(A=self._A, b=-gamma * h, soft=self._soft, h=h)

@@ -1,0 +1,141 @@
+"""Prioritised relaxation (issue 16 item 1): when a person moves into the robot faster than it can
+retreat, the self rows and joint barriers hold, every person row keeps at least A_i u ≥ min(b_i, 0)
+(the robot never closes in), the total violation is the least possible, and the problem is feasible
+by construction (u = 0, σ = max(b, 0)). Random states on the real robot model, real Pinocchio,
+DAQP and OSQP; the least violation is checked against SciPy's LP solver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import linprog
+
+from services.safety.assembly import build_pipeline
+from services.safety.barriers.joints import JointBarrier
+from shared.config import load_config
+from shared.messages import SafetyMode
+from shared.names import CAPSULE_NAMES
+
+DT = 0.002
+TOL = 1e-6
+FOREARM = CAPSULE_NAMES.index("left_forearm")
+
+
+def pipeline_for(backend: str = "daqp"):
+    return build_pipeline(load_config(environ={}, overrides={"safety": {"backend": backend}}))
+
+
+def stacked(p, q):
+    blocks = p.filter.blocks_at(q)
+    return (np.vstack([b.A for b in blocks]), np.concatenate([b.b for b in blocks]),
+            np.concatenate([b.soft for b in blocks]))
+
+
+def random_intrusion(p, rng: np.random.Generator):
+    """A random joint state whose self rows and joint barriers hold, and a person's capsules pushed
+    into the margin of the robot's left forearm at 1–3 m/s toward it."""
+    kin = p.kinematics
+    while True:
+        q = rng.uniform(kin.q_min, kin.q_max)
+        p.barrier.set_external(None)
+        A, b, soft = stacked(p, q)
+        if (b[~soft] <= 0.0).all():
+            break
+    endpoints, _ = kin.compute(q)
+    forearm = endpoints[FOREARM]
+    centre = forearm.mean(axis=0) + rng.normal(scale=0.03, size=3)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    capsules = np.repeat(np.stack([centre - 0.1 * direction, centre + 0.1 * direction])[None], 7, axis=0)
+    capsules += rng.normal(scale=0.05, size=(7, 1, 3))
+    toward = forearm.mean(axis=0) - capsules.mean(axis=1)
+    speed = rng.uniform(1.0, 3.0)
+    velocities = np.repeat((speed * toward / np.linalg.norm(toward, axis=1, keepdims=True))[:, None], 2, axis=1)
+    p.barrier.set_external(capsules, np.full(7, 0.06), np.ones(7, bool), velocities)
+    return q
+
+
+def least_violation(A, b, soft, lower, upper, relax_penalty: float) -> float:
+    """min Σ c_i σ_i s.t. A u + σ ≥ b, 0 ≤ σ ≤ max(b, 0), lower ≤ u ≤ upper (SciPy's HiGHS LP)."""
+    m, n = A.shape
+    cost = np.concatenate([np.zeros(n), np.where(soft, 1.0, relax_penalty)])
+    result = linprog(cost, A_ub=-np.hstack([A, np.eye(m)]), b_ub=-b,
+                     bounds=[*zip(lower, upper), *((0.0, max(v, 0.0)) for v in b)], method="highs")
+    assert result.status == 0, result.message
+    return float(result.fun)
+
+
+@pytest.mark.parametrize("backend", ["daqp", "osqp"])
+def test_random_intrusions_keep_self_rows_and_never_close_in_on_the_person(backend: str) -> None:
+    p = pipeline_for(backend)
+    rng = np.random.default_rng(16)
+    relaxed = 0
+    for _ in range(40):
+        q = random_intrusion(p, rng)
+        A, b, soft = stacked(p, q)
+        p.filter.reset(q)
+        q_nom = rng.uniform(p.kinematics.q_min, p.kinematics.q_max)  # imitation pulling anywhere
+        result = p.filter.step(q_nom, DT)
+        u = result.u
+        assert np.isfinite(u).all() and np.isfinite(result.q_cbf).all()
+        assert result.mode is not SafetyMode.HOLD
+        tol = 1e-6 if backend == "daqp" else 2e-3
+        lhs = A @ u
+        assert (lhs[~soft] >= b[~soft] - tol).all(), "a self row or joint barrier gave way"
+        assert (lhs[soft] >= np.minimum(b[soft], 0.0) - tol).all(), "the robot closed in on a person capsule"
+        if result.mode is SafetyMode.RELAXED and result.relaxed.any():
+            relaxed += 1
+            assert result.rows.soft[result.relaxed].all(), "only person rows give way"
+    assert relaxed >= 10, "the intrusions must make the rows infeasible often"
+
+
+def test_the_relaxed_problem_is_feasible_by_construction_and_least_violating() -> None:
+    """On random states: u = 0, σ = max(b, 0) satisfies every constraint; the filter's total
+    violation equals the LP's minimum."""
+    p = pipeline_for()
+    rng = np.random.default_rng(61)
+    params = p.filter.params
+    checked = 0
+    for _ in range(40):
+        q = random_intrusion(p, rng)
+        A, b, soft = stacked(p, q)
+        upper = np.minimum(params.u_max, (p.kinematics.q_max - q) / DT)
+        lower = np.minimum(np.maximum(-params.u_max, (p.kinematics.q_min - q) / DT), upper)
+        assert (lower <= 0.0).all() and (upper >= 0.0).all()
+        sigma0 = np.maximum(b, 0.0)
+        assert (A @ np.zeros(A.shape[1]) + sigma0 >= b).all()  # the feasibility argument
+        p.filter.reset(q)
+        result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT)
+        if result.mode is not SafetyMode.RELAXED or not result.relaxed.any():
+            continue
+        violation = np.maximum(b - A @ result.u, 0.0)
+        cost = np.where(soft, 1.0, params.relax_penalty)
+        best = least_violation(A, b, soft, lower, upper, params.relax_penalty)
+        assert float(cost @ violation) <= best + 1e-4 * max(1.0, best), (cost @ violation, best)
+        checked += 1
+    assert checked >= 10
+
+
+def test_an_already_violated_self_row_is_softened_not_dropped() -> None:
+    """Arms crossed through each other (it must not happen): the output is finite and the violated
+    self rows do not get worse (A u ≥ min(b, 0) = 0 for them)."""
+    p = pipeline_for()
+    p.barrier.set_external(None)
+    q = np.array([0.0, 0.1, -1.3, -1.4, 0.5, -1.3, 1.4, 0.5])
+    A, b, soft = stacked(p, q)
+    violated = ~soft & (b > 1e-6)
+    assert violated.any(), "the test state must violate a self row"
+    p.filter.reset(q)
+    result = p.filter.step(p.kinematics.q_home, DT)
+    assert np.isfinite(result.u).all() and result.mode is SafetyMode.RELAXED
+    assert (A[violated] @ result.u >= -1e-6).all()
+
+
+def test_joint_barrier_rows_are_a_barrier_kind() -> None:
+    p = pipeline_for()
+    joints = [b for b in p.filter.barriers if isinstance(b, JointBarrier)]
+    assert len(joints) == 1 and len(joints[0].index) > 0
+    block = joints[0].constraint_rows(p.kinematics.q_home, *p.kinematics.compute(p.kinematics.q_home),
+                                      gamma=10.0, phi=0.02, lookahead=0.0)
+    assert not block.soft.any() and (block.h > 0).all()  # home lies inside every joint barrier
+    np.testing.assert_allclose(block.b, -10.0 * block.h)
