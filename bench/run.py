@@ -16,6 +16,7 @@ BENCHMARKS: dict[str, str] = {
     "safety_step": "bench.safety_step",
     "geometry": "bench.geometry",
     "latency": "bench.latency",
+    "point_filter": "bench.point_filter",
 }
 
 

@@ -354,15 +354,28 @@ class PoseEstimatorName(str, Enum):
     PAPER = "paper"
 
 
-class PointFilterConfig(_Section):
-    """Per-keypoint EMA + jump rejection (paper §II-A), in the robot frame.
+class PointFilterKind(str, Enum):
+    """The smoothing step of the point filter: the paper's EMA, or the One Euro filter (Casiez et al. 2012)."""
 
-    EMA gain per frame α = 1 − exp(−Δt/τ); the steady-state lag behind a constant-velocity
-    point is Δt (1 − α)/α ≈ τ − Δt/2 seconds.
+    EMA = "ema"
+    ONE_EURO = "one_euro"
+
+
+class PointFilterConfig(_Section):
+    """Per-keypoint smoothing + jump rejection (paper §II-A), in the robot frame.
+
+    ``kind: ema``: gain per frame α = 1 − exp(−Δt/τ); the steady-state lag behind a
+    constant-velocity point is Δt (1 − α)/α ≈ τ − Δt/2 seconds. ``kind: one_euro``: α = 1/(1 + τ/Δt),
+    τ = 1/(2π f_c), f_c = ``min_cutoff_hz`` + ``beta``·‖v̂‖ with v̂ the point's velocity low-passed at
+    ``d_cutoff_hz`` (services.perception.point_filter).
     """
 
+    kind: PointFilterKind = Field(default=PointFilterKind.ONE_EURO, description="smoothing step: ema | one_euro")
     min_confidence: float = Field(default=0.3, ge=0, le=1, description="below: the point is missing this frame")
     ema_tau_s: float = Field(default=0.03, ge=0, le=2, description="EMA time constant τ (s); 0: no smoothing")
+    min_cutoff_hz: float = Field(default=1.0, gt=0, le=100, description="One Euro: cut-off of a still point (Hz)")
+    beta: float = Field(default=20.0, ge=0, le=1000, description="One Euro: cut-off growth with speed (Hz per m/s)")
+    d_cutoff_hz: float = Field(default=1.0, gt=0, le=100, description="One Euro: cut-off of the velocity estimate (Hz)")
     max_speed: float = Field(default=12.0, gt=0, le=100, description="faster apparent motion is a jump: rejected (m/s)")
     reacquire_frames: int = Field(default=3, ge=1, le=100, description="consistent rejected frames that re-anchor a point")
     hold_s: float = Field(default=0.25, ge=0, le=10, description="a missing point is held this long, then invalid (s)")

@@ -34,8 +34,12 @@ def run(filt: PointFilter, frames: list[np.ndarray], confidences: list[np.ndarra
     return out
 
 
-def test_a_single_frame_outlier_is_rejected_counted_and_held() -> None:
-    filt = PointFilter(PointFilterConfig(), 15)
+KINDS = ["ema", "one_euro"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_single_frame_outlier_is_rejected_counted_and_held(kind: str) -> None:
+    filt = PointFilter(PointFilterConfig(kind=kind), 15)
     frames = [pose() for _ in range(20)]
     frames[10] = frames[10].copy()
     frames[10][WRIST] += (0.0, 0.6, 0.0)  # 18 m/s in one frame: a detection error
@@ -47,7 +51,7 @@ def test_a_single_frame_outlier_is_rejected_counted_and_held() -> None:
 
 
 def test_steady_motion_is_followed_with_the_configured_lag() -> None:
-    conf = PointFilterConfig(ema_tau_s=0.05)
+    conf = PointFilterConfig(kind="ema", ema_tau_s=0.05)
     filt = PointFilter(conf, 15)
     velocity = np.array([0.8, -0.3, 0.2])  # m/s, the whole body
     frames = [pose() + velocity * i * DT for i in range(60)]
@@ -67,13 +71,14 @@ def test_steady_motion_is_followed_with_the_configured_lag() -> None:
 
 
 def test_no_smoothing_is_the_identity() -> None:
-    filt = PointFilter(PointFilterConfig(ema_tau_s=0.0), 15)
+    filt = PointFilter(PointFilterConfig(kind="ema", ema_tau_s=0.0), 15)
     frames = [pose() + 0.01 * i for i in range(5)]
     np.testing.assert_array_equal(run(filt, frames)[-1].points, frames[-1])
 
 
-def test_missing_wrist_is_held_then_marks_the_arm_invalid() -> None:
-    conf = PerceptionConfig()
+@pytest.mark.parametrize("kind", KINDS)
+def test_missing_wrist_is_held_then_marks_the_arm_invalid(kind: str) -> None:
+    conf = PerceptionConfig(point_filter={"kind": kind})
     pipeline = PerceptionPipeline(conf, HumanConfig())
     hold = conf.point_filter.hold_s
     results = []
@@ -104,8 +109,9 @@ def test_missing_wrist_is_held_then_marks_the_arm_invalid() -> None:
     assert (result.capsule_velocities[C["left_forearm"]] == 0).all()  # no velocity across the gap
 
 
-def test_a_long_gap_resets_everything() -> None:
-    conf = PointFilterConfig()
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_long_gap_resets_everything(kind: str) -> None:
+    conf = PointFilterConfig(kind=kind)
     filt = PointFilter(conf, 15)
     run(filt, [pose()] * 5)
     moved = pose() + (2.0, 0.0, 0.0)  # the person walked 2 m while the camera was off
@@ -116,8 +122,9 @@ def test_a_long_gap_resets_everything() -> None:
     assert filt.resets == 2
 
 
-def test_a_bad_first_measurement_is_reanchored() -> None:
-    conf = PointFilterConfig(reacquire_frames=3)
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_bad_first_measurement_is_reanchored(kind: str) -> None:
+    conf = PointFilterConfig(kind=kind, reacquire_frames=3)
     filt = PointFilter(conf, 15)
     first = pose()
     first[WRIST] += (0.0, 0.0, 2.0)  # the very first wrist detection is wrong (2 m off)
@@ -172,3 +179,79 @@ def test_capsules_follow_the_skeleton_with_configured_radii() -> None:
     capsules, valid, _ = builder(PointFilter(PointFilterConfig(), 15)(0.0, points, confidence))
     np.testing.assert_allclose(capsules[C["torso"], 1], points[[K["left_shoulder"], K["right_shoulder"]]].mean(axis=0))
     assert valid[C["torso"]] and not valid[C["left_thigh"]] and valid[C["right_thigh"]]
+
+
+# --- the One Euro filter (Casiez, Roussel, Vogel, CHI 2012) --------------------------------------
+
+def one_euro_reference(t: np.ndarray, x: np.ndarray, min_cutoff: float, beta: float, d_cutoff: float) -> np.ndarray:
+    """The published scalar filter, transcribed: α(f_c) = 1/(1 + τ/T_e), τ = 1/(2π f_c);
+    dx = (x_i − x_{i−1})/T_e low-passed at d_cutoff; f_c = min_cutoff + β|dx̂|; x̂ low-passed at f_c."""
+    def alpha(cutoff: float, te: float) -> float:
+        return 1.0 / (1.0 + (1.0 / (2 * math.pi * cutoff)) / te)
+
+    out, x_hat, dx_hat = [x[0]], x[0], 0.0
+    for i in range(1, len(x)):
+        te = t[i] - t[i - 1]
+        dx_hat += alpha(d_cutoff, te) * ((x[i] - x[i - 1]) / te - dx_hat)
+        x_hat += alpha(min_cutoff + beta * abs(dx_hat), te) * (x[i] - x_hat)
+        out.append(x_hat)
+    return np.array(out)
+
+
+def test_one_euro_is_the_published_filter_and_its_cutoff_grows_with_speed() -> None:
+    """Motion along one axis (‖ẋ̂‖ = |ẋ̂|): every keypoint equals the paper's scalar filter to 1e-12;
+    at constant speed v the lag is 1/(2π (min_cutoff + β v)) — shorter the faster the point moves."""
+    conf = PointFilterConfig(kind="one_euro", min_cutoff_hz=1.3, beta=7.0, d_cutoff_hz=2.0)
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.025, 0.04, 200))  # uneven frame times
+    x = np.cumsum(rng.normal(scale=0.01, size=200)) + 0.3 * np.sin(3 * t)  # stays under max_speed
+    filt = PointFilter(conf, 15)
+    got = np.array([filt(ti, pose() + (xi, 0.0, 0.0), ONES).points[WRIST, 0] - pose()[WRIST, 0] for ti, xi in zip(t, x)])
+    np.testing.assert_allclose(got, one_euro_reference(t, x, 1.3, 7.0, 2.0), atol=1e-12)
+    assert filt.rejected == 0
+
+    lags = []
+    for speed in (0.2, 1.0, 3.0):
+        filt = PointFilter(conf, 15)
+        out = run(filt, [pose() + (speed * i * DT, 0.0, 0.0) for i in range(150)])
+        lag = (speed * 149 * DT - (out[-1].points[WRIST, 0] - pose()[WRIST, 0])) / speed
+        assert lag == pytest.approx(1 / (2 * math.pi * (1.3 + 7.0 * speed)), rel=1e-6)
+        assert lag == pytest.approx(filt.steady_state_lag(DT, speed), rel=1e-6)
+        lags.append(lag)
+    assert lags[0] > lags[1] > lags[2]
+
+
+def test_shipped_one_euro_has_less_lag_than_the_ema_and_no_more_jitter() -> None:
+    """A still point with 1 cm Gaussian noise (jitter = std of the output) and a point moving at
+    1 m/s (lag): the shipped One Euro against the paper's EMA (τ = 0.03 s)."""
+    ema = PointFilterConfig(kind="ema")
+    one_euro = PointFilterConfig()
+    assert one_euro.kind == "one_euro"
+    noise = np.random.default_rng(11).normal(scale=0.01, size=(600, 3))
+    jitter, lag = {}, {}
+    for name, conf in (("ema", ema), ("one_euro", one_euro)):
+        out = run(PointFilter(conf, 15), [pose() + n for n in noise])
+        jitter[name] = float(np.std([o.points[WRIST] for o in out[30:]], axis=0).mean())
+        moving = run(PointFilter(conf, 15), [pose() + (i * DT, 0.0, 0.0) for i in range(120)])
+        lag[name] = 119 * DT - (moving[-1].points[WRIST, 0] - pose()[WRIST, 0])
+    assert jitter["one_euro"] <= jitter["ema"], jitter
+    assert lag["one_euro"] < 0.6 * lag["ema"], lag
+    assert jitter["one_euro"] < 0.01  # it does smooth: below the raw noise
+
+
+@pytest.mark.parametrize("field, value", [("kind", "kalman"), ("min_cutoff_hz", 0.0), ("min_cutoff_hz", -1.0),
+                                          ("beta", -0.1), ("d_cutoff_hz", 0.0), ("d_cutoff_hz", 1e3), ("beta", math.nan)])
+def test_one_euro_settings_are_validated(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        PointFilterConfig(**{field: value})
+    PointFilterConfig(kind="one_euro", min_cutoff_hz=0.5, beta=0.0, d_cutoff_hz=5.0)  # in range: fine
+
+
+def test_switching_kind_at_run_time_keeps_the_points() -> None:
+    """The service applies a new point_filter live: the estimate carries over, only smoothing changes."""
+    filt = PointFilter(PointFilterConfig(kind="ema"), 15)
+    run(filt, [pose()] * 5)
+    filt.conf = PointFilterConfig(kind="one_euro")
+    out = filt(5 * DT, pose(), ONES)
+    assert not out.fresh.any() and filt.resets == 0
+    np.testing.assert_allclose(out.points, pose(), atol=1e-12)
