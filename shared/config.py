@@ -402,6 +402,9 @@ class PoseAnglesConfig(_Section):
         default=4.0, gt=0, le=100,
         description="a shoulder angle's branch switch (a jump ≥ π/2 in one frame) is spread at this rate (rad/s)",
     )
+    rate_cutoff_hz: float = Field(
+        default=5.0, gt=0, le=100, description="θ̇ (HumanState.theta_rate): low-pass cut-off of the finite difference (Hz)"
+    )
 
     @model_validator(mode="after")
     def _observability_inside_paper_zone(self) -> PoseAnglesConfig:

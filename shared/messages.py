@@ -114,13 +114,24 @@ class HumanState(Message):
     ``capsules[i] = (a_i, b_i)`` endpoints of human capsule i (CAPSULE_NAMES) with radius
     ``capsule_radii[i]``, valid where ``capsule_valid``. ``capsule_velocities`` (m/s, same shape as
     ``capsules``) are the measured endpoint velocities when perception provides them.
+
+    ``theta_rate`` (rad/s, POSE_ANGLE_NAMES order) is dθ/dt of the published ``theta``: the finite
+    difference of consecutive valid θ (differences wrapped into [−π, π)), low-passed
+    (services.perception.angles.AngleRates). It is 0 wherever it is not computable: θ invalid in
+    this or the previous frame, the first frame after a filter reset, or a keypoint the angle uses
+    re-initialised this frame (no differencing across a gap); its low-pass restarts from 0 there.
+    Finite always; a sender without rates sends zeros (the default). Schema version 2 added it.
     """
 
     SCHEMA_NAME: ClassVar[str] = "HumanState"
+    SCHEMA_VERSION: ClassVar[int] = 2
     keypoints: Array(N_KEYPOINTS, 3)
     keypoint_valid: Array(N_KEYPOINTS, dtype=np.bool_)
     theta: Array(N_ANGLES)
     theta_valid: Array(N_ANGLES, dtype=np.bool_)
+    theta_rate: Array(N_ANGLES) = Field(
+        default_factory=lambda: np.zeros(N_ANGLES), description="dθ/dt (rad/s); 0 where not computable"
+    )
     capsules: Array(N_CAPSULES, 2, 3)
     capsule_radii: Array(N_CAPSULES)
     capsule_valid: Array(N_CAPSULES, dtype=np.bool_)

@@ -58,6 +58,7 @@ ARRAY_FIELDS: dict[type[Message], dict[str, tuple[tuple[int, ...], np.dtype]]] =
         "keypoint_valid": ((15,), B1),
         "theta": ((8,), F8),
         "theta_valid": ((8,), B1),
+        "theta_rate": ((8,), F8),
         "capsules": ((7, 2, 3), F8),
         "capsule_radii": ((7,), F8),
         "capsule_valid": ((7,), B1),
@@ -201,6 +202,7 @@ FACTORIES: dict[type[Message], st.SearchStrategy[Message]] = {
         keypoint_valid=bools(15),
         theta=f64(8),
         theta_valid=bools(8),
+        theta_rate=f64(8),
         capsules=f64(7, 2, 3),
         capsule_radii=f64(7, elements=st.floats(0.0, 1.0)),
         capsule_valid=bools(7),
@@ -268,6 +270,7 @@ def make(cls: type[Message], **changes: Any) -> Message:
             keypoint_valid=rng.random(15) > 0.2,
             theta=rng.uniform(-1, 1, 8),
             theta_valid=rng.random(8) > 0.2,
+            theta_rate=rng.normal(size=8),
             capsules=rng.normal(size=(7, 2, 3)),
             capsule_radii=rng.uniform(0.03, 0.2, 7),
             capsule_valid=rng.random(7) > 0.2,
@@ -393,6 +396,7 @@ def test_defaults_of_optional_fields_are_none() -> None:
     )
     decoded = decode(encode(minimal))
     assert decoded.capsule_velocities is None and decoded.capture_stamp is None
+    np.testing.assert_array_equal(decoded.theta_rate, np.zeros(8))  # no rates: zeros (not computable)
     assert decoded.seq == 0 and decoded.source == "" and decoded.frame_id == "robot"
     command = decode(encode(JointCommand(stamp=1.0, q=np.zeros(8), dq=np.zeros(8))))
     assert command.mode is SafetyMode.NOMINAL and command.human_stamp is None and command.human_seq is None

@@ -272,7 +272,8 @@ class Hostile:
             return _pack(payload)
         if kind == "wrong_version":
             payload = _wire(base)
-            payload["schema"] = {"name": cls.SCHEMA_NAME, "version": self.pick([0, 2, -1, 99, 2**40, "1", None, [1], {"v": 1}])}
+            wrong = [0, cls.SCHEMA_VERSION - 1 or 2, cls.SCHEMA_VERSION + 1, -1, 99, 2**40, "1", None, [1], {"v": 1}]
+            payload["schema"] = {"name": cls.SCHEMA_NAME, "version": self.pick(wrong)}
             return _pack(payload)
         if kind == "wrong_shape":  # of an array or a scalar (pydantic takes an empty array for an empty list)
             name = self.pick([n for n in fields if not isinstance(getattr(base, n), (dict, list))])

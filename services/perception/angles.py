@@ -99,6 +99,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.perception.point_filter import lowpass_gain
 from shared.config import PoseAnglesConfig, PoseEstimatorName
 from shared.names import KEYPOINT_INDEX, POSE_ANGLE_NAMES
 
@@ -326,3 +327,58 @@ class PoseEstimator:
             offset[i], out[i] = e, target + e
         self._tracked[arm] = list(tracked)
         return out[0], out[1]
+
+
+def _angle_keypoints() -> np.ndarray:
+    """(8, 15) bool: the keypoints each angle of θ is computed from."""
+    uses = np.zeros((N_ANGLES, len(KEYPOINT_INDEX)), dtype=bool)
+    torso = [_PELVIS, _L_SHOULDER, _R_SHOULDER]
+    uses[0:2, torso] = True
+    for _, shoulder, elbow, wrist, first in _ARMS:
+        uses[first:first + 2, torso + [elbow]] = True
+        uses[first + 2, [shoulder, elbow, wrist]] = True
+    return uses
+
+
+ANGLE_KEYPOINTS = _angle_keypoints()
+
+
+class AngleRates:
+    """θ̇ (8,) rad/s from consecutive θ of one person (the contract of ``HumanState.theta_rate``).
+
+    Per angle i, between frames at t_prev and t (Δt = t − t_prev > 0) where θ_i is valid in both
+    and none of its keypoints (:data:`ANGLE_KEYPOINTS`) is fresh (re-initialised by the point
+    filter this frame):
+
+        ω_i = wrap_2pi(θ_i(t) − θ_i(t_prev)) / Δt,        θ̇_i ← θ̇_i + α (ω_i − θ̇_i),
+
+    α = 1/(1 + τ/Δt), τ = 1/(2π ``rate_cutoff_hz``) (a first-order low-pass: it delays the rate by
+    ≈ τ and divides the difference's noise). Anywhere else θ̇_i = 0 and its low-pass restarts from
+    0; :meth:`reset` (a filter reset) zeroes every rate. The output is always finite.
+    """
+
+    def __init__(self, rate_cutoff_hz: float) -> None:
+        self.rate_cutoff_hz = rate_cutoff_hz
+        self._rate = np.zeros(N_ANGLES)
+        self._theta = np.zeros(N_ANGLES)
+        self._valid = np.zeros(N_ANGLES, dtype=bool)
+        self._t: float | None = None
+
+    def reset(self) -> None:
+        self._rate[:] = 0.0
+        self._valid[:] = False
+        self._t = None
+
+    def __call__(self, t: float, theta: np.ndarray, valid: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+        """θ̇ at ``t`` (s) from θ (8,), θ_valid (8,) and the filter's ``fresh`` (15,) points."""
+        dt = 0.0 if self._t is None else t - self._t
+        usable = valid & self._valid & ~(ANGLE_KEYPOINTS & fresh).any(axis=1)
+        if dt > 0.0 and usable.any():
+            step = theta - self._theta
+            step -= _TWO_PI * np.floor((step + math.pi) / _TWO_PI)  # wrap_2pi, per angle
+            self._rate += lowpass_gain(dt, self.rate_cutoff_hz) * (step / dt - self._rate)
+        self._rate[~usable] = 0.0
+        self._theta[:] = theta
+        self._valid[:] = valid
+        self._t = t
+        return self._rate.copy()

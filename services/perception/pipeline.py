@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.perception.angles import PoseEstimator
+from services.perception.angles import AngleRates, PoseEstimator
 from services.perception.capsules import HumanCapsules
 from services.perception.point_filter import PointFilter
 from services.perception.stream import SkeletonFrame
@@ -31,6 +31,7 @@ class PerceptionResult:
     keypoint_valid: np.ndarray
     theta: np.ndarray
     theta_valid: np.ndarray
+    theta_rate: np.ndarray
     capsules: np.ndarray
     capsule_radii: np.ndarray
     capsule_valid: np.ndarray
@@ -44,6 +45,7 @@ class PerceptionResult:
             keypoint_valid=self.keypoint_valid,
             theta=self.theta,
             theta_valid=self.theta_valid,
+            theta_rate=self.theta_rate,
             capsules=self.capsules,
             capsule_radii=self.capsule_radii,
             capsule_valid=self.capsule_valid,
@@ -70,6 +72,7 @@ class PerceptionPipeline:
     def __init__(self, conf: PerceptionConfig, human: HumanConfig) -> None:
         self.filter = PointFilter(conf.point_filter, N_KEYPOINTS)
         self.estimator = PoseEstimator(conf.angles)
+        self.rates = AngleRates(conf.angles.rate_cutoff_hz)
         self.capsules = HumanCapsules(human)
         self.counters = PerceptionCounters()
 
@@ -77,6 +80,7 @@ class PerceptionPipeline:
         """Use new filter, angle and capsule parameters from the next frame on (state is kept)."""
         self.filter.conf = conf.point_filter
         self.estimator.configure(conf.angles)
+        self.rates.rate_cutoff_hz = conf.angles.rate_cutoff_hz
         self.capsules.configure(human)
 
     def step(self, frame: SkeletonFrame) -> PerceptionResult:
@@ -85,8 +89,10 @@ class PerceptionPipeline:
         filtered = self.filter(frame.t, frame.xyz, frame.conf, frame.discontinuity)
         if self.filter.resets != resets_before:
             self.estimator.reset()
+            self.rates.reset()
             self.capsules.reset()
         theta, theta_valid = self.estimator(filtered.points, filtered.valid, frame.t)
+        theta_rate = self.rates(frame.t, theta, theta_valid, filtered.fresh)
         capsules, capsule_valid, velocities = self.capsules(filtered)
         keypoints = np.where(filtered.valid[:, None], filtered.points, 0.0)  # valid points are finite
 
@@ -104,6 +110,7 @@ class PerceptionPipeline:
             keypoint_valid=filtered.valid,
             theta=theta,
             theta_valid=theta_valid,
+            theta_rate=theta_rate,
             capsules=capsules,
             capsule_radii=self.capsules.radii,
             capsule_valid=capsule_valid,

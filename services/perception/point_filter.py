@@ -51,6 +51,11 @@ class FilteredSkeleton:
     fresh: np.ndarray
 
 
+def lowpass_gain(dt: float, cutoff_hz: float | np.ndarray) -> float | np.ndarray:
+    """Gain α = 1/(1 + τ/Δt), τ = 1/(2π f_c), of a first-order low-pass at ``cutoff_hz`` sampled every ``dt`` s."""
+    return 1.0 / (1.0 + 1.0 / (2.0 * math.pi * cutoff_hz * dt))
+
+
 class _Ema:
     """The paper's smoothing step: one gain α = 1 − exp(−Δt/τ) for every point."""
 
@@ -75,21 +80,17 @@ class _OneEuro:
         self.conf = conf
         self._velocity = np.zeros((n_points, 3))  # ẋ̂ (m/s)
 
-    @staticmethod
-    def _alpha(dt: float, cutoff_hz: float | np.ndarray) -> float | np.ndarray:
-        return 1.0 / (1.0 + 1.0 / (2.0 * math.pi * cutoff_hz * dt))  # 1/(1 + τ/Δt), τ = 1/(2π f_c)
-
     def alpha(self, dt: float, speed: float = 0.0) -> float:
-        return float(self._alpha(dt, self.conf.min_cutoff_hz + self.conf.beta * speed))
+        return float(lowpass_gain(dt, self.conf.min_cutoff_hz + self.conf.beta * speed))
 
     def gains(self, dt: float, velocity: np.ndarray, update: np.ndarray, fresh: np.ndarray) -> float | np.ndarray:
         conf, smoothed = self.conf, self._velocity
         if dt <= 0.0:
             return 1.0
-        smoothed += np.where(update[:, None], self._alpha(dt, conf.d_cutoff_hz) * (velocity - smoothed), 0.0)
+        smoothed += np.where(update[:, None], lowpass_gain(dt, conf.d_cutoff_hz) * (velocity - smoothed), 0.0)
         smoothed[fresh] = 0.0
         speed = np.sqrt(np.einsum("ij,ij->i", smoothed, smoothed))
-        return self._alpha(dt, conf.min_cutoff_hz + conf.beta * speed)
+        return lowpass_gain(dt, conf.min_cutoff_hz + conf.beta * speed)
 
     def reset(self) -> None:
         self._velocity[:] = 0.0

@@ -1,0 +1,92 @@
+"""θ̇ (HumanState.theta_rate) from the filtered skeleton: the rate of a known motion, zeros where it is
+not computable (invalid angle, re-initialised keypoint, filter reset), wrapping, and the message."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.perception.angles import AngleRates
+from services.perception.pipeline import PerceptionPipeline
+from services.perception.stream import SkeletonFrame
+from services.perception.synthetic import skeleton
+from shared.codec import decode, encode
+from shared.config import HumanConfig, PerceptionConfig
+from shared.names import KEYPOINT_INDEX as K
+from shared.names import POSE_ANGLE_NAMES
+
+FPS = 30.0
+A = {name: i for i, name in enumerate(POSE_ANGLE_NAMES)}
+OMEGA = 1.5  # rad/s
+
+
+def pose_at(t: float) -> np.ndarray:
+    """Left shoulder pitch ramping at OMEGA (inside the paper zone), right elbow bending at −OMEGA/2."""
+    theta = np.array([0.0, 0.0, -0.4 + OMEGA * t, 0.2, 0.3, 0.1, 0.15, 1.2 - 0.5 * OMEGA * t])
+    return skeleton(theta)
+
+
+def frames(n: int, t0: float = 0.0, start: int = 0) -> list[SkeletonFrame]:
+    return [SkeletonFrame(t=t0 + i / FPS, xyz=pose_at(i / FPS), conf=np.ones(15), captured=0.0) for i in range(start, start + n)]
+
+
+def test_rates_of_a_known_motion_through_the_pipeline() -> None:
+    pipeline = PerceptionPipeline(PerceptionConfig(), HumanConfig())
+    results = [pipeline.step(frame) for frame in frames(24)]
+    assert (results[0].theta_rate == 0).all()  # nothing to difference yet
+    settled = results[-1].theta_rate
+    assert settled[A["left_shoulder_pitch"]] == pytest.approx(OMEGA, rel=0.02)
+    assert settled[A["right_elbow"]] == pytest.approx(-0.5 * OMEGA, rel=0.02)
+    others = [i for i in range(8) if i not in (A["left_shoulder_pitch"], A["right_elbow"])]
+    assert np.abs(settled[others]).max() < 0.02
+    message = decode(encode(results[-1].to_message(stamp=1.0)))
+    np.testing.assert_array_equal(message.theta_rate, settled)
+
+
+def test_rates_are_zero_where_not_computable() -> None:
+    pipeline = PerceptionPipeline(PerceptionConfig(), HumanConfig())
+    out = [pipeline.step(frame) for frame in frames(15)]
+    assert out[-1].theta_rate[A["left_shoulder_pitch"]] > 1.0
+    # The left elbow keypoint vanishes for the hold and beyond: the left shoulder angles go invalid.
+    hold_frames = int(PerceptionConfig().point_filter.hold_s * FPS) + 2
+    for i in range(15, 15 + hold_frames):
+        frame = frames(1, start=i)[0]
+        confidence = np.ones(15)
+        confidence[K["left_elbow"]] = 0.0
+        out.append(pipeline.step(SkeletonFrame(t=frame.t, xyz=frame.xyz, conf=confidence, captured=0.0)))
+    lost = out[-1]
+    assert not lost.theta_valid[A["left_shoulder_pitch"]]
+    assert lost.theta_rate[A["left_shoulder_pitch"]] == 0.0 and lost.theta_rate[A["left_elbow"]] == 0.0
+    assert lost.theta_rate[A["right_elbow"]] == pytest.approx(-0.5 * OMEGA, rel=0.05)  # the other arm is unaffected
+    back = pipeline.step(frames(1, start=15 + hold_frames)[0])  # the elbow returns: fresh, no difference across the gap
+    assert back.theta_valid[A["left_shoulder_pitch"]] and back.theta_rate[A["left_shoulder_pitch"]] == 0.0
+    again = pipeline.step(frames(1, start=16 + hold_frames)[0])
+    assert again.theta_rate[A["left_shoulder_pitch"]] > 0.1  # and it restarts from 0 after
+    # A discontinuity (replay starting over) resets the filter: every rate 0 on that frame.
+    restart = frames(1, t0=0.0)[0]
+    reset = pipeline.step(SkeletonFrame(t=restart.t, xyz=restart.xyz, conf=restart.conf, captured=0.0, discontinuity=True))
+    assert pipeline.counters.filter_resets == 1 and (reset.theta_rate == 0).all()
+
+
+def test_rate_differences_are_wrapped_and_low_passed() -> None:
+    """θ going from 3.1 to −3.1 rad moved +0.083 rad, not −6.2; the low-pass is α = 1/(1 + τ/Δt)."""
+    rates = AngleRates(rate_cutoff_hz=5.0)
+    valid, fresh = np.ones(8, bool), np.zeros(15, bool)
+    dt = 1 / FPS
+    rates(0.0, np.full(8, 3.1), valid, fresh)
+    out = rates(dt, np.full(8, -3.1), valid, fresh)
+    alpha = 1 / (1 + 1 / (2 * math.pi * 5.0 * dt))
+    np.testing.assert_allclose(out, alpha * (2 * math.pi - 6.2) / dt)
+    assert np.isfinite(rates(dt, np.zeros(8), valid, fresh)).all()  # no time elapsed: no division, rates kept finite
+
+
+def test_theta_rate_is_validated_like_every_array() -> None:
+    result = PerceptionPipeline(PerceptionConfig(), HumanConfig()).step(frames(1)[0])
+    message = result.to_message(stamp=0.0)
+    assert message.schema_.version == 2
+    fields = {name: getattr(message, name) for name in type(message).model_fields if name != "schema_"}
+    for bad in (np.full(8, np.nan), np.array([0.0] * 7 + [np.inf]), np.zeros(7), np.zeros((8, 1))):
+        with pytest.raises(ValueError):
+            type(message)(**{**fields, "theta_rate": bad})
