@@ -296,6 +296,37 @@ def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) 
 
 
 @pytest.mark.integration
+def test_a_person_inside_the_forearm_is_reported_as_intrusion_and_relaxed_pairs_over_zenoh(live: Live) -> None:
+    """A person's forearm pushed through the robot's forward-pointing arm at 2 m/s: the rows become
+    infeasible, SafetyStatus names the robot–person pairs that gave way and flags the intrusion."""
+    keypoints, far = person(2.0)
+    state = {"capsules": far, "velocities": np.zeros((7, 2, 3))}
+    humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"], keypoints))
+    try:
+        live.rec.wait_command(lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout=5)
+        time.sleep(0.5)
+        start = time.monotonic()
+        for x in np.arange(0.9, -0.05, -2.0 / 60):  # across the arm and into the chest at 2 m/s
+            capsules = far.copy()
+            capsules[LEFT_FOREARM] = [[x, -0.1, 1.1], [x, 0.4, 1.1]]
+            velocities = np.zeros((7, 2, 3))
+            velocities[LEFT_FOREARM, :, 0] = -2.0
+            state["capsules"], state["velocities"] = capsules, velocities
+            time.sleep(1 / 60)
+        time.sleep(0.5)
+        during = live.rec.statuses_since(start)
+    finally:
+        humans.stop()
+    intrusions = [s for s in during if s.person_intrusion]
+    relaxed = [s for s in during if s.relaxed_pairs]
+    assert intrusions, sorted({s.mode.value for s in during})
+    assert relaxed and all(name.split("|")[1].startswith("human") for s in relaxed for name in s.relaxed_pairs), relaxed[:2]
+    assert any("|human.left_forearm" in name for s in relaxed for name in s.relaxed_pairs)
+    assert any(s.mode is SafetyMode.RELAXED for s in during)  # relaxed_pairs gather every step since the last status
+    assert np.isfinite(live.rec.last_command().q).all()
+
+
+@pytest.mark.integration
 def test_malformed_human_state_is_counted_and_the_loop_keeps_running(live: Live) -> None:
     before = live.rec.wait_status(lambda s: True, timeout=2).dropped.get("human/state", 0)
     seq_before = live.rec.last_command().seq

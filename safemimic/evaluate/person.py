@@ -156,7 +156,7 @@ def true_person(conf: StackConfig, source: EvaluationInput, t: np.ndarray, retar
     unchanged = np.zeros(points.shape[1], bool)
     for k in range(n):
         capsules[k], capsule_valid[k], _ = builder(FilteredSkeleton(float(t[k]), points[k], valid[k], unchanged))
-        theta, theta_valid = estimator(np.nan_to_num(points[k]), valid[k])
+        theta, theta_valid = estimator(np.nan_to_num(points[k]), valid[k], float(t[k]))
         q_true[k] = retargeter(theta, theta_valid)
     return TruePerson(t=t, keypoints=points, valid=valid, capsules=capsules, capsule_valid=capsule_valid,
                       radii=builder.radii.copy(), q_true=q_true)

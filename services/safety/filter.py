@@ -191,7 +191,7 @@ class SafetyFilter:
             u, q_next, mode = np.zeros(problem.n), q.copy(), SafetyMode.HOLD
         self.q_cbf = np.minimum(np.maximum(q_next, self.q_min), self.q_max)
         person = self.enforce & rows.soft & rows.enabled & (np.nan_to_num(rows.h, nan=np.inf) < 0.0)
-        intrusion = bool(person.any() and (rows.A[person] @ u >= -1e-9).all())
+        intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
         return StepResult(
             q_cbf=self.q_cbf.copy(), u=u, u_ref=u_ref, mode=mode, rows=rows, active_rows=active,
             qp_time_s=qp_time, qp_status=solution.status, relaxed=relaxed, intrusion=intrusion,
