@@ -57,7 +57,11 @@ VIOLATION_TOL = 1e-3
 #: strict-convexity regularisation of the relaxed stages (weight of ‖σ‖², and of ‖u − u_ref‖² in stage 1)
 _EPS = 1e-4
 #: slack above stage 1's a stage-2 row may take (solver tolerance)
-_SLACK_TOL = 1e-9
+_SLACK_TOL = 1e-6
+#: DAQP's primal tolerance in the relaxed stages
+RELAXED_PRIMAL_TOL = 1e-6
+#: a row whose largest |A_ij| is below this does not depend on u (a static link's pair)
+_STATIC_ROW = 1e-12
 #: a slack above this (m/s of barrier rate) means its row gave way
 RELAXED_TOL = 1e-6
 
@@ -125,9 +129,12 @@ class SafetyFilter:
         self.backend_name = backend
         self._qp: QPBackend = make_backend(backend)
         # the relaxed stages are small, LP-like and badly scaled (costs up to relax_penalty against
-        # ε-regularisation): an active-set solver (DAQP) solves them exactly whatever the backend
-        self._relaxed_qp: QPBackend = make_backend("daqp")
-        self._tracking_qp: QPBackend = make_backend("daqp")
+        # ε-regularisation): an active-set solver (DAQP) solves them exactly whatever the backend;
+        # its primal tolerance is loosened to 1e-6 (m/s of
+        # barrier rate) there: near-static rows (|A_i| ~ 1e-4) pin σ_i at its cap, and at 1e-9 DAQP
+        # declared such feasible problems infeasible (44 steps of one development clip)
+        self._relaxed_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
+        self._tracking_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
         self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
         self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
@@ -164,8 +171,16 @@ class SafetyFilter:
             A = np.vstack([block.A for block in blocks])
             b = np.concatenate([block.b for block in blocks])
             soft = np.concatenate([block.soft for block in blocks])
+            # Rows no velocity can change (a pair of a static link such as a locked thigh, a missing
+            # capsule's disabled row) hold or fail whatever u is: they are left out of the QP, where a
+            # failing one would only make it infeasible (a person touching a static link is an
+            # intrusion, reported below, not a row the robot could honour).
+            kept = np.flatnonzero(np.abs(A).max(axis=1) > _STATIC_ROW)
+            if len(kept) < len(b):
+                A, b, soft = A[kept], b[kept], soft[kept]
         else:
             A, b, soft = rows.A[:0], rows.b[:0], rows.soft[:0]
+            kept = np.arange(0)
         problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
@@ -182,7 +197,9 @@ class SafetyFilter:
             if u is not None:
                 mode = SafetyMode.RELAXED
                 active = int(np.count_nonzero(A @ u - b <= 1e-6))
-                relaxed = slack[: len(rows.b)] > RELAXED_TOL
+                gave_way = np.zeros(sum(len(block.b) for block in blocks), bool)
+                gave_way[kept] = slack > RELAXED_TOL
+                relaxed = gave_way[: len(rows.b)]
             else:
                 u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
         u = np.minimum(np.maximum(u, lower), upper)  # an iterative solver's tolerance never exceeds u_max

@@ -15,13 +15,14 @@ BACKENDS: dict[str, tuple[str, str]] = {
 }
 
 
-def make_backend(name: str) -> QPBackend:
-    """A fresh backend instance by name (``daqp`` or ``osqp``)."""
+def make_backend(name: str, **settings: float) -> QPBackend:
+    """A fresh backend instance by name (``daqp`` or ``osqp``), with the backend's own ``settings``
+    (e.g. DAQP's ``primal_tol``)."""
     try:
         module, cls = BACKENDS[name]
     except KeyError:
         raise ValueError(f"unknown QP backend {name!r}; known: {', '.join(BACKENDS)}") from None
-    return getattr(importlib.import_module(module), cls)()
+    return getattr(importlib.import_module(module), cls)(**settings)
 
 
 __all__ = ["BACKENDS", "QPBackend", "QPProblem", "QPSolution", "QPStatus", "make_backend"]
