@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import os
 import sys
 import time
 import urllib.parse
@@ -63,8 +64,15 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
                         help="draw the closest-point segment of every monitored pair with h ≤ M (default 0.02 m)")
     parser.add_argument("--memory-limit", default="512MiB", help="what the gRPC server keeps for late viewers (default 512MiB)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    parser.add_argument("--nice", type=int, default=NICENESS, metavar="N",
+                        help=f"lower this process's CPU priority by N (default {NICENESS}): on a host shared with "
+                        "the 500 Hz safety loop the viewer gives way, it never competes with it; 0 keeps it")
     add_bus_arguments(parser)
     return parser
+
+
+#: Default niceness of the viewer process (see --nice).
+NICENESS = 10
 
 
 def _open_sink(rec, args: argparse.Namespace) -> dict:
@@ -85,7 +93,17 @@ def _open_sink(rec, args: argparse.Namespace) -> dict:
     return {"url": f"http://{args.host}:{args.web_port}/?url={urllib.parse.quote(uri, safe='')}", "grpc": uri}
 
 
+def _yield_cpu(niceness: int) -> None:
+    """Lower this process's scheduling priority (POSIX nice); a platform without it keeps going."""
+    if niceness > 0 and hasattr(os, "nice"):
+        try:
+            os.nice(niceness)
+        except OSError as exc:
+            print(f"safemimic viewer: cannot lower the CPU priority ({exc}); continuing", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
+    _yield_cpu(args.nice)
     if importlib.util.find_spec("rerun") is None:
         print("safemimic viewer needs rerun-sdk: pip install 'safemimic[viz]'", file=sys.stderr)
         return 2
