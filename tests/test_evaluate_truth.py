@@ -24,6 +24,7 @@ from shared.config import ExecutorConfig
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX, KEYPOINT_NAMES
 from shared.robot_spec import configured_robot_spec, default_robot_spec_path, load_robot_spec
 from tests.conftest import G1_MJCF
+from tests.test_executor_sim import person_capsules
 
 GAINS = PDGains.from_config(ExecutorConfig())
 OURS = load_robot_spec(default_robot_spec_path())
@@ -39,14 +40,6 @@ def write_recording(path: Path, xyz: np.ndarray, fps: float = 30.0) -> Path:
 
 def raise_recording(seconds: float = 2.0) -> np.ndarray:
     return scenario_recording(get_scenario("side-by-side-arm-raise"), seconds, 30.0, Placement(y=0.7)).xyz.copy()
-
-
-def one_capsule(index: int, a, b, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    capsules = np.zeros((7, 2, 3))
-    capsules[index] = a, b
-    valid = np.zeros(7, bool)
-    valid[index] = True
-    return capsules, np.full(7, radius), valid
 
 
 # ------------------------------------------------------------------------------- the two people
@@ -141,7 +134,7 @@ def test_a_visual_only_link_touching_the_person_is_counted(tmp_path: Path) -> No
     hand_geom = sim.model.geom("left_test_hand").id
     assert hand_geom in set(sim.surface_geoms.tolist())
     centre = sim.data.geom_xpos[hand_geom].copy()
-    sim.set_human(*one_capsule(LEFT_FOREARM, centre + [0.0, 0.0, -0.05], centre + [0.0, 0.0, 0.05], 0.02))
+    sim.set_human(*person_capsules(LEFT_FOREARM, centre + [0.0, 0.0, -0.05], centre + [0.0, 0.0, 0.05], 0.02))
     sim.step()
     touching = sim.surface_contacts()
     assert [c.robot_body for c in touching] == ["left_test_hand"], touching
@@ -157,7 +150,7 @@ def test_the_real_g1_rubber_hands_are_robot_surfaces() -> None:
              and "rubber_hand" in sim.model.mesh(sim.model.geom_dataid[g]).name]
     assert len(hands) == 2, names
     centre = sim.data.geom_xpos[hands[0]].copy()
-    sim.set_human(*one_capsule(LEFT_FOREARM, centre + [0.0, 0.0, -0.03], centre + [0.0, 0.0, 0.03], 0.01))
+    sim.set_human(*person_capsules(LEFT_FOREARM, centre + [0.0, 0.0, -0.03], centre + [0.0, 0.0, 0.03], 0.01))
     sim.step()
     assert any(c.robot_body.endswith("wrist_yaw_link") for c in sim.surface_contacts())
 
@@ -183,7 +176,7 @@ def test_an_arm_driven_into_a_still_person_is_robot_caused() -> None:
     kinematics = RobotKinematics(OURS)
     probe = TruthProbe(evaluation_config(None, "neutral", "auto", None), kinematics)
     hand = sim.data.body("left_elbow_link").xpos.copy() + [0.25, 0.0, 0.0]
-    capsules, radii, valid = one_capsule(CAPSULE_NAMES.index("torso"), hand + [0.12, -0.3, 0.0],
+    capsules, radii, valid = person_capsules(CAPSULE_NAMES.index("torso"), hand + [0.12, -0.3, 0.0],
                                          hand + [0.12, 0.3, 0.0], 0.05)
     sim.set_human(capsules, radii, valid)
     elbow = sim.joint_names.index("left_elbow_joint")
@@ -211,7 +204,7 @@ def test_a_person_moving_into_a_still_robot_is_person_caused() -> None:
     steps = 0
     for k in range(400):  # a capsule sliding sideways into the still forearm at 0.5 m/s
         x = forearm + [0.0, 0.3 - 0.5 * k * sim.timestep, 0.0]
-        sim.set_human(*one_capsule(LEFT_FOREARM, x + [0.0, 0.0, -0.2], x + [0.0, 0.0, 0.2], 0.04))
+        sim.set_human(*person_capsules(LEFT_FOREARM, x + [0.0, 0.0, -0.2], x + [0.0, 0.0, 0.2], 0.04))
         sim.set_command(sim.q_home)
         sim.step()
         touching = sim.surface_contacts()
