@@ -166,7 +166,24 @@ class SafetyConfig(_Section):
     phi: float = Field(default=0.02, ge=0, le=0.5, description="barrier margin φ (m)")
     gain: float = Field(default=8.0, gt=0, le=1000, description="K of u_ref = K (q_nom − q_cbf) (1/s)")
     weights: JointVector = Field(default_factory=lambda: [1.0] * N_JOINTS)
-    u_max: JointVector = Field(default_factory=lambda: [4.0] * N_JOINTS)
+    u_max: JointVector = Field(
+        default_factory=lambda: [3.0, 3.0, 10.0, 10.0, 10.0, 10.0, 10.0, 10.0],
+        description="|u| bound per joint (rad/s), within the robot description's joint_velocity_limits (the G1's "
+        "published 37 rad/s): the person's own retargeted joint speeds on the development clips are p99 1–2 rad/s "
+        "at the waist and 6–10 rad/s at the arms (a punch's elbow 25), so 10 follows ordinary fast arm motion "
+        "(jumping jacks, punches but their peaks) unsaturated; the waist stays at 3 (it carries the upper body "
+        "over the balance controller)",
+    )
+    feedforward: bool = Field(
+        default=True,
+        description="u_ref = q̇_nom + K (q_nom − q_cbf) with q̇_nom the retargeted θ̇ of the human state (no lag "
+        "behind a ramp); false: the paper's eq. 7, u_ref = K (q_nom − q_cbf) (a lag of ≈ 1/K)",
+    )
+    extrapolate_max_s: float = Field(
+        default=0.05, ge=0, le=0.5,
+        description="between camera frames q_nom is extrapolated by its rate for one frame period (the interval of "
+        "the newest two human states' stamps) but at most this long (s); 0: held as a staircase",
+    )
     backend: QPBackendName = QPBackendName.DAQP
     pairs: str = Field(default="default", pattern=r"^[a-z0-9_]+$")
     geometry: GeometryName = Field(default=GeometryName.CAPSULE, description="collision geometry of the CBF rows")
@@ -289,6 +306,23 @@ class G1Config(_Section):
     )
     fault_speed: float = Field(default=10.0, gt=0, le=50, description="a measured joint faster than this latches a fault (rad/s)")
     dry_run_print_s: float = Field(default=0.5, gt=0, le=60, description="dry run: one frame printed this often (s)")
+    arm_sdk_waist_range: dict[str, tuple[float, float]] = Field(
+        default_factory=lambda: {"waist_roll_joint": (-0.1, 0.1), "waist_pitch_joint": (-0.15, 0.05)},
+        description="arm_sdk mode only: waist joint -> (min, max) (rad) the imitated waist targets are clipped to. "
+        "Leaning the torso over the running balance controller (worst: forward, with the arms raised forward) makes "
+        "the G1 lean forward and lose balance (unitree_sdk2_python issues #146, #173; a small backward pitch "
+        "helped in #173), so forward pitch (G1 +) is limited to 0.05, backward to 0.15, roll to ±0.1; {} : the "
+        "hardware range. Put the same range in the robot description's limits so the safety layer plans with it",
+    )
+
+    @model_validator(mode="after")
+    def _check_waist_range(self) -> G1Config:
+        for joint, (lo, hi) in self.arm_sdk_waist_range.items():
+            if joint not in ("waist_roll_joint", "waist_pitch_joint"):
+                raise ValueError(f"arm_sdk_waist_range: {joint!r} is not waist_roll_joint or waist_pitch_joint")
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= 0.0 <= hi and lo < hi):
+                raise ValueError(f"arm_sdk_waist_range[{joint!r}] = ({lo}, {hi}) must be finite with min ≤ 0 ≤ max, min < max")
+        return self
 
 
 class ExecutorConfig(_Section):

@@ -118,6 +118,11 @@ class RobotSpec(BaseModel):
         default_factory=dict,
         description="imitation joint -> (min, max) (rad), overriding (tightening) the model's range",
     )
+    joint_velocity_limits: dict[str, float] = Field(
+        default_factory=dict,
+        description="imitation joint -> the robot's velocity limit (rad/s, > 0; the manufacturer's description); "
+        "safety.u_max and u_min must stay within it; unlisted: no limit known",
+    )
     joint_barriers: dict[str, tuple[float | None, float | None]] = Field(
         default_factory=dict,
         description="imitation joint -> (lower, upper) (rad; null: none) kept by the CBF as joint-space "
@@ -203,6 +208,11 @@ class RobotSpec(BaseModel):
         extra = sorted(set(self.limits) - set(self.imitation_joints))
         if extra:
             raise ValueError(f"limits given for joints that are not imitation joints: {extra}")
+        for joint, limit in self.joint_velocity_limits.items():
+            if joint not in self.imitation_joints:
+                raise ValueError(f"joint_velocity_limits given for {joint!r}, which is not an imitation joint")
+            if not (math.isfinite(limit) and limit > 0):
+                raise ValueError(f"joint_velocity_limits[{joint!r}] must be finite and > 0, got {limit}")
         for joint, (lo, hi) in self.joint_barriers.items():
             if joint not in self.imitation_joints:
                 raise ValueError(f"joint_barriers given for {joint!r}, which is not an imitation joint")
@@ -216,6 +226,18 @@ class RobotSpec(BaseModel):
         return self
 
     # ------------------------------------------------------------------ helpers
+    def velocity_limits(self) -> list[float]:
+        """The velocity limit of each imitation joint (rad/s, imitation_joints order; inf: unlisted)."""
+        return [self.joint_velocity_limits.get(j, math.inf) for j in self.imitation_joints]
+
+    def check_velocity_bounds(self, u_max: list[float], u_min: list[float] | None = None) -> None:
+        """Raise ValueError unless |u_min| and u_max lie within :meth:`velocity_limits` on every joint."""
+        bounds = [max(hi, -lo) for hi, lo in zip(u_max, u_min or [-v for v in u_max], strict=True)]
+        over = [f"{j} {b} > {lim}" for j, b, lim in zip(self.imitation_joints, bounds, self.velocity_limits(), strict=True)
+                if b > lim]
+        if over:
+            raise ValueError(f"safety velocity bounds exceed robot {self.name}'s joint_velocity_limits (rad/s): {', '.join(over)}")
+
     @property
     def model_path(self) -> Path:
         """``model`` as a :class:`~pathlib.Path` (absolute once loaded by :func:`load_robot_spec`)."""

@@ -45,7 +45,7 @@ def test_defaults_from_shipped_yaml() -> None:
     assert cfg.safety.gamma == 10.0 and cfg.safety.phi == 0.02 and cfg.safety.gain == 8.0
     assert cfg.safety.weights == [1.0] * 8
     # the YAML's per-joint speed limits (not the model's uniform default): waist slower than arms
-    assert cfg.safety.u_max == [2.0, 2.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0]
+    assert cfg.safety.u_max == [3.0, 3.0, 10.0, 10.0, 10.0, 10.0, 10.0, 10.0]
     assert cfg.safety.human_velocity_term is True and cfg.safety.human_timeout_s == 0.5
     assert cfg.safety.pairs == "default"
     assert cfg.bus.mode is BusMode.PEER and cfg.bus.connect == [] and cfg.bus.listen == []
@@ -259,8 +259,8 @@ def test_safemimic_config_selects_another_file(tmp_path: Path) -> None:
     other = write(tmp_path / "lab.yaml", "robot_id: lab_g1\nsafety:\n  gamma: 3\n  backend: osqp\n")
     cfg = load_config(environ={CONFIG_ENV: str(other)})
     assert cfg.robot_id == "lab_g1" and cfg.safety.gamma == 3.0 and cfg.safety.backend is QPBackendName.OSQP
-    # fields the file leaves out take the model defaults, not default.yaml's values
-    assert cfg.safety.u_max == StackConfig().safety.u_max != load_config(environ={}).safety.u_max
+    # fields the file leaves out take the model defaults, not default.yaml's values (equal for now)
+    assert cfg.safety.u_max == StackConfig().safety.u_max and cfg.safety.phi == StackConfig().safety.phi
     # environment overrides still apply on top of the selected file
     cfg = load_config(environ={CONFIG_ENV: str(other), "SAFEMIMIC__SAFETY__GAMMA": "4"})
     assert cfg.safety.gamma == 4.0 and cfg.robot_id == "lab_g1"
@@ -395,3 +395,28 @@ def test_deep_merge_properties(base: dict, patch: dict) -> None:
     _check_merge(base, patch, merged)
     assert deep_merge(merged, patch) == merged  # idempotent
     assert deep_merge(base, {}) == base and deep_merge({}, patch) == patch
+
+
+def test_feedforward_extrapolation_and_velocity_bounds_within_the_g1_limits() -> None:
+    """Issue 17: feed-forward on by default (off: the paper's eq. 7), extrapolation bounded, and the
+    velocity bounds within the G1's published joint velocity limits read from the robot description."""
+    from shared.robot_spec import configured_robot_spec
+
+    conf = load_config(environ={})
+    assert conf.safety.feedforward is True and 0 < conf.safety.extrapolate_max_s <= 0.05
+    assert load_config(environ={"SAFEMIMIC__SAFETY__FEEDFORWARD": "false"}).safety.feedforward is False
+    for bad in (-0.01, 0.6):
+        with pytest.raises(ConfigError):
+            load_config(environ={}, overrides={"safety": {"extrapolate_max_s": bad}})
+    spec = configured_robot_spec(conf)
+    assert spec.velocity_limits() == [37.0] * 8  # unitree_ros g1_29dof_rev_1_0.urdf: velocity="37"
+    spec.check_velocity_bounds(conf.safety.u_max, conf.safety.u_min)
+    assert max(conf.safety.u_max) > 4.0, "faster than the old 4 rad/s that saturated on punches"
+    with pytest.raises(ValueError, match="left_elbow_joint 40"):
+        spec.check_velocity_bounds([3.0, 3.0, 10.0, 10.0, 40.0, 10.0, 10.0, 10.0])
+    with pytest.raises(ValueError, match="waist_roll_joint 38"):
+        spec.check_velocity_bounds(conf.safety.u_max, [-38.0] + [-1.0] * 7)
+    raw = spec.model_dump()
+    for bad_limits in ({"left_wrist_pitch_joint": 22.0}, {"waist_roll_joint": 0.0}):
+        with pytest.raises(ValueError):
+            type(spec).model_validate({**raw, "joint_velocity_limits": bad_limits})

@@ -126,3 +126,27 @@ def test_backends_agree_on_random_problems() -> None:
         assert x.primal_residual <= 1e-8 and y.primal_residual <= 1e-4
     with pytest.raises(ValueError, match="unknown QP backend"):
         make_backend("cplex")
+
+
+@pytest.mark.parametrize("feedforward", [True, False])
+def test_ramp_is_tracked_without_lag_with_feedforward(feedforward: bool) -> None:
+    """Issue 17: u_ref = q̇_nom + K (q_nom − q_cbf) tracks a ramp with zero steady-state error; the
+    paper's u_ref = K (q_nom − q_cbf) trails it by v/K (a lag of 1/K)."""
+    p = pipeline_for()
+    kin = p.kinematics
+    p.barrier.set_external(None)
+    p.filter.reset(kin.q_home)
+    rate = np.zeros(8)
+    rate[2] = rate[5] = -1.5  # both shoulders pitch forward at 1.5 rad/s (clear of every self pair)
+    errors = []
+    for k in range(int(1.2 / DT)):
+        q_nom = kin.q_home + rate * k * DT
+        result = p.filter.step(q_nom, DT, rate if feedforward else None)
+        errors.append(q_nom[2] + rate[2] * DT - result.q_cbf[2])  # behind the next step's target
+        assert result.mode is SafetyMode.NOMINAL
+    steady = np.array(errors[-50:])
+    gain = p.filter.params.gain
+    if feedforward:
+        assert np.abs(steady).max() < 1e-3 * abs(rate[2]) / gain, steady[-1]
+    else:  # the K-only loop trails by v/K
+        np.testing.assert_allclose(steady, rate[2] / gain, rtol=1e-3)

@@ -294,3 +294,27 @@ def test_check_frame_finds_what_must_not_be_sent() -> None:
         mutate(bad["motor_cmd"])
         bad["crc"] = lowcmd_crc(bad)
         assert any(expected in p for p in problems(bad)), (expected, problems(bad))
+
+
+def test_arm_sdk_limits_the_imitated_waist_by_default() -> None:
+    """Issue 17: leaning over the balance controller tips the G1 (unitree_sdk2_python #146, #173):
+    in arm_sdk mode the waist targets stay within executor.g1.arm_sdk_waist_range by default."""
+    lean = np.array([0.4, 0.4, 0.3, 0.25, 0.9, 0.3, -0.25, 0.9])  # waist rolled and pitched forward
+    default = G1Config().arm_sdk_waist_range
+    assert default["waist_pitch_joint"][1] <= 0.05 and max(map(abs, default["waist_roll_joint"])) <= 0.1
+    robot = Robot()
+    frames = robot.run(2.0, lean)
+    np.testing.assert_allclose(targets(frames[-1:], SLOTS[:2])[0], [default["waist_roll_joint"][1],
+                                                                      default["waist_pitch_joint"][1]], atol=1e-6)
+    np.testing.assert_allclose(targets(frames[-1:], ARMS)[0], lean[2:], atol=1e-6)  # the arms are not limited
+    assert robot.ctl.command(robot.t, -lean, np.zeros(8))[1] == default["waist_pitch_joint"][0]
+    for c in (conf(arm_sdk_waist_range={}), conf(mode="lowcmd")):  # switched off / not arm_sdk: hardware range
+        frames = Robot(c).run(2.0, lean)
+        np.testing.assert_allclose(targets(frames[-1:], SLOTS[:2])[0], lean[:2], atol=1e-6)
+
+
+@pytest.mark.parametrize("bad", [{"waist_yaw_joint": (-0.1, 0.1)}, {"waist_pitch_joint": (0.1, 0.2)},
+                                 {"waist_roll_joint": (0.1, -0.1)}])
+def test_arm_sdk_waist_range_is_validated(bad) -> None:
+    with pytest.raises(ValueError):
+        G1Config(arm_sdk_waist_range=bad)

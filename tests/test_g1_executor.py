@@ -95,6 +95,17 @@ def stop(proc, event: str = "stopped") -> dict:
     return proc.wait_json(event, timeout=20)
 
 
+def command_once_ramped_in(endpoint: str, q: np.ndarray) -> None:
+    """Once the executor is alive, command ``q`` for the ramp-in and 0.7 s more."""
+    watcher = AliveWatcher()
+    with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
+        bus.watch_alive(watcher)
+        watcher.wait("executor", True, timeout=30)
+        commander = Commander(bus, q)
+        time.sleep(RAMP_IN_S + 0.7)
+        commander.stop()
+
+
 def load(record: Path) -> dict[str, np.ndarray]:
     with np.load(record) as data:
         return {k: data[k] for k in data.files}
@@ -204,17 +215,36 @@ def test_locked_waist(spawn, tmp_path: Path, policy: str) -> None:
     np.testing.assert_allclose(r["q"][r["q"][:, WEIGHT_SLOT] == 1.0][-1, SLOTS[2:]], TARGET[2:], atol=2e-3)
 
 
+@pytest.mark.parametrize("waist_range", [None, "{}"])
+def test_arm_sdk_limits_the_waist_lean_by_default(spawn, tmp_path: Path, waist_range: str | None) -> None:
+    """Arms raised forward with the torso leaning over the balance controller tip the G1
+    (unitree_sdk2_python #146, #173): by default the robot receives waist targets within
+    executor.g1.arm_sdk_waist_range; ``{}`` gives the hardware range back."""
+    dds = domain()
+    robot, record = start_robot(spawn, tmp_path, dds)
+    service, endpoint = start_executor(spawn, dds, **({} if waist_range is None else {"arm_sdk_waist_range": waist_range}))
+    lean = TARGET.copy()
+    lean[:2] = [0.25, 0.3]  # waist rolled and pitched forward, arms raised forward (TARGET's)
+    command_once_ramped_in(endpoint, lean)
+    stop(service)
+    stop(robot)
+    r = load(record)
+    sent = r["q"][r["q"][:, WEIGHT_SLOT] == 1.0][-1].astype(float)
+    np.testing.assert_allclose(sent[SLOTS[2:]], lean[2:], atol=2e-3)  # the arms follow
+    output = "".join(service.output)
+    if waist_range is None:
+        assert sent[13] <= 0.1 + 1e-4 and sent[14] <= 0.05 + 1e-4, sent[[13, 14]]
+        assert (r["q"][:, [13, 14]].astype(float) <= [0.1 + 1e-4, 0.05 + 1e-4]).all(), "never beyond the range"
+        assert "arm_sdk_waist_range" in output
+    else:
+        np.testing.assert_allclose(sent[[13, 14]], lean[:2], atol=2e-3)
+
+
 def test_lowcmd_mode_commands_every_motor(spawn, tmp_path: Path) -> None:
     dds = domain()
     robot, record = start_robot(spawn, tmp_path, dds)
     service, endpoint = start_executor(spawn, dds, mode="lowcmd")
-    watcher = AliveWatcher()
-    with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
-        bus.watch_alive(watcher)
-        watcher.wait("executor", True, timeout=30)
-        commander = Commander(bus, TARGET)
-        time.sleep(RAMP_IN_S + 0.7)
-        commander.stop()
+    command_once_ramped_in(endpoint, TARGET)
     g1 = stop(service)["robot"]
     summary = stop(robot)
     assert g1["topic"] == "rt/lowcmd" and summary["arm_sdk"] == 0 and summary["bad_crc"] == 0

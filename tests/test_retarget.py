@@ -109,3 +109,33 @@ def test_mirror_pose_is_an_involution() -> None:
     th = np.arange(8.0)
     np.testing.assert_array_equal(mirror_pose(mirror_pose(th)), th)
     np.testing.assert_array_equal(mirror_pose(th)[[2, 3, 4]], th[[5, 6, 7]])
+
+
+def test_rate_is_s_times_theta_rate_mirrored_and_zero_where_clipped_or_invalid(pipeline) -> None:
+    """Issue 17: q̇_nom = S ⊙ θ̇' (θ̇ mirrored like θ), 0 where q_nom is clipped or θ is invalid, and
+    it is the derivative of the retargeting wherever q_nom is not clipped."""
+    r = pipeline.retargeter
+    rng = np.random.default_rng(4)
+    th = theta(torso_roll=0.1, l_pitch=0.6, l_roll=0.3, l_elbow=0.5, r_pitch=0.4, r_roll=0.2, r_elbow=0.7)
+    rate = rng.uniform(-3, 3, 8)
+    r(th)
+    dq = r.rate(rate)
+    expected = r.scale * (mirror_pose(rate) if r.mirror else rate)
+    np.testing.assert_allclose(dq, expected)
+    eps = 1e-6  # the retargeting's own derivative
+    np.testing.assert_allclose((r(th + eps * rate) - r(th - eps * rate)) / (2 * eps), dq, atol=1e-6)
+    r(th)
+    # a joint clipped at its limit: the person goes on, q_nom stays, so does its rate (0)
+    far = th.copy()
+    far[2] = 6.0  # left pitch far past the robot's range
+    clipped_joint = 5 if r.mirror else 2
+    q = r(far)
+    assert q[clipped_joint] in (r.q_min[clipped_joint], r.q_max[clipped_joint])
+    dq = r.rate(rate)
+    assert dq[clipped_joint] == 0.0 and np.count_nonzero(dq) == 7
+    # an invalid angle keeps its last q_nom and has no rate; a non-finite rate gives 0
+    valid = np.ones(8, bool)
+    valid[4] = False
+    r(th, valid)
+    dq = r.rate(np.where(np.arange(8) == 0, np.nan, rate))
+    assert dq[7 if r.mirror else 4] == 0.0 and dq[0] == 0.0

@@ -449,6 +449,38 @@ def test_stale_human_keeps_capsules_and_stops_imitating(service: SafetyService) 
         HumanState.model_validate({**human_state(np.zeros(8), person(0.2)[1]).model_dump(), "frame_id": "camera"})
 
 
+def test_between_frames_q_nom_is_extrapolated_one_frame_and_its_rate_fed_forward(service: SafetyService) -> None:
+    """Issue 17: q_nom(t) = q + q̇ (t − t_received) for one frame period (the stamps' interval),
+    u_ref = q̇_nom + K (q_nom − q_cbf); after that frame, when stale, or with feedforward off: no q̇_nom."""
+    theta = arm_forward() * 0.4
+    first = human_state(theta, person(2.0)[1])
+    rate = np.zeros(8)
+    rate[LEFT_SHOULDER_PITCH] = 2.0  # the person's left arm rising at 2 rad/s
+    frame = 1 / 30
+    second = first.model_copy(update={"stamp": first.stamp + frame, "seq": 1, "theta_rate": rate})
+    service.human.set(first)
+    service.tick(service.human.get().received + 0.001)
+    service.human.set(second)
+    received = service.human.get().received
+    r = service.pipeline.retargeter
+    dq = r.scale * rate
+    assert dq[2] == -2.0  # G1 shoulder pitch is negative forward
+    gain = service.conf.safety.gain
+    for tau, fed in ((0.01, True), (0.02, True), (0.2, False)):
+        q_before = service.pipeline.filter.q_cbf.copy()
+        result = service.tick(received + tau)
+        q_nom = service._q_nom + dq * min(tau, frame)  # never more than one frame ahead
+        np.testing.assert_allclose(result.u_ref, gain * (q_nom - q_before) + (dq if fed else 0.0), atol=1e-9)
+    # feedforward off: the paper's eq. 7 on the same extrapolated target
+    service.conf = service.conf.model_copy(update={"safety": service.conf.safety.model_copy(update={"feedforward": False})})
+    q_before = service.pipeline.filter.q_cbf.copy()
+    result = service.tick(received + 0.2)
+    np.testing.assert_allclose(result.u_ref, gain * (service._q_nom + dq * frame - q_before), atol=1e-9)
+    result = service.tick(received + service.conf.safety.human_timeout_s + 0.1)  # stale: hold q_cbf
+    assert service._human_stale
+    np.testing.assert_allclose(result.u, 0.0, atol=1e-9)
+
+
 def test_vanished_person_is_held_and_stops_imitating_until_forgotten(service: SafetyService) -> None:
     full = load_config(environ={}).model_dump(mode="json")
     full["safety"]["lost_human_hold_s"] = hold = 0.05

@@ -7,7 +7,8 @@
 2. the newest *available* perceived state (``HumanTrack.t`` ≤ t_k: its frame time plus the
    camera latency; zero-order hold, stale after ``safety.human_timeout_s``; capsules that turn
    invalid held by :class:`~services.safety.human_memory.HumanMemory`, as in the safety service)
-   sets the barrier's external capsules and q_nom (q_cbf while stale or lost);
+   sets the barrier's external capsules and q_nom, extrapolated between frames by its rate and that
+   rate fed forward as the service does (:mod:`services.safety.nominal`; q_cbf while stale or lost);
 3. one CBF-QP step gives q_cbf and u*, the MuJoCo executor servos to them for one control period;
 4. the outcome is measured: MuJoCo's robot–robot contacts, robot–human contacts with the true
    person (every robot surface, with the robot's own closing speed at each contact) and with the
@@ -32,6 +33,7 @@ from services.executor.mujoco_executor import MujocoExecutor
 from services.executor.sim import PDGains, body_contacts
 from services.safety.assembly import SafetyPipeline, build_pipeline
 from services.safety.human_memory import HumanMemory
+from services.safety.nominal import NominalTrack
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import PairSet
 from shared.config import StackConfig
@@ -146,7 +148,8 @@ def run_episode(
     use_velocity = conf.safety.human_velocity_term
     timeout, hold = conf.safety.human_timeout_s, conf.safety.lost_human_hold_s
     memory = HumanMemory()
-    q_nom = safety.filter.q_cbf.copy()  # no human yet: hold
+    nominal = NominalTrack(safety.filter.q_cbf.copy())  # no human yet: hold
+    feedforward, horizon = conf.safety.feedforward, conf.safety.extrapolate_max_s
     newest, applied, stale = -1, -1, False
     executor.start()
     for k, t in enumerate(ep.t):
@@ -160,11 +163,17 @@ def run_episode(
                 memory.update(state, human.t[newest], hold)
                 safety.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity and not now_stale))
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
-                    q_nom = safety.retargeter(state.theta, state.theta_valid)
+                    r = safety.retargeter
+                    nominal.update(r(state.theta, state.theta_valid), r.rate(state.theta_rate), state.stamp,
+                                   human.t[newest], horizon, r.q_min, r.q_max)
                 if newest != applied:
                     sim.set_human(state.capsules, state.capsule_radii, state.capsule_valid, PERCEIVED_PERSON)
                 applied, stale = newest, now_stale
-        result = safety.filter.step(safety.filter.q_cbf.copy() if stale or memory.lost else q_nom, dt)
+        q_nom, dq_nom = nominal.at(t)
+        if stale or memory.lost:
+            result = safety.filter.step(safety.filter.q_cbf.copy(), dt)
+        else:
+            result = safety.filter.step(q_nom, dt, dq_nom if feedforward else None)
         executor.apply_command(result.q_cbf, result.u)
         executor.tick()
 

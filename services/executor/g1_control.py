@@ -27,7 +27,9 @@ never commanded. While IDLE the frame carries ``w = 0`` and the measured pose, s
 starts where the robot is.
 
 Limits, imitated joints, every tick: the target is clipped into the joint range (hardware table ∩
-robot description limits, ``position_margin`` inside the hardware range), moves towards the newest
+robot description limits, ``position_margin`` inside the hardware range; in ``arm_sdk`` mode the waist
+also within ``arm_sdk_waist_range``, because leaning over the balance controller tips the robot
+forward: unitree_sdk2_python issues #146, #173), moves towards the newest
 command at most ``max_speed`` (rad/s), and stays within ``torque_fraction · τ_max / kp`` of the
 measured angle (so the PD torque stays below the motor's limit). Velocity feed-forward is the
 command's ``dq`` clipped to ``max_speed``, 0 while the rate limit holds the target back.
@@ -146,6 +148,14 @@ class G1Controller:
             hi = table[slot].upper - conf.position_margin
             if name in spec.limits:
                 lo, hi = max(lo, spec.limits[name][0]), min(hi, spec.limits[name][1])
+            if conf.mode is G1Mode.ARM_SDK and name in conf.arm_sdk_waist_range:
+                w_lo, w_hi = conf.arm_sdk_waist_range[name]
+                if w_lo > lo or w_hi < hi:
+                    log.warning("arm_sdk: %s imitated within [%.2f, %.2f] rad (executor.g1.arm_sdk_waist_range: leaning "
+                                "over the balance controller tips the robot); the robot description allows [%.2f, %.2f]: "
+                                "set the same range in its limits: so the safety layer plans with it",
+                                name, max(lo, w_lo), min(hi, w_hi), lo, hi)
+                lo, hi = max(lo, w_lo), min(hi, w_hi)
             if not lo < hi:
                 raise G1StartError(f"{name}: no admissible range left ({lo:.3f} ≥ {hi:.3f}) after position_margin "
                                  "and the robot description's limits")

@@ -87,6 +87,7 @@ def make_geometry(conf: StackConfig, pairs: PairSet, kinematics: RobotKinematics
 def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics: RobotKinematics | None = None) -> SafetyPipeline:
     """Assemble the safety pipeline for ``conf`` (optionally another pair preset / shared kinematics)."""
     spec = configured_robot_spec(conf) if kinematics is None else kinematics.spec
+    spec.check_velocity_bounds(conf.safety.u_max, conf.safety.u_min)
     kinematics = kinematics or RobotKinematics(spec)
     pairs = preset_pair_set(pair_preset or conf.safety.pairs, [tuple(p) for p in spec.self_pairs])
     pairs = select_groups(pairs, {group.value for group in conf.safety.enabled_pair_groups})

@@ -1,6 +1,6 @@
 """The CBF-QP safety filter: one control step (paper eqs. 7–9; DESIGN §4).
 
-    u_ref = K (q_nom − q_cbf)
+    u_ref = q̇_nom + K (q_nom − q_cbf)      (q̇_nom: the target's own velocity; none: the paper's eq. 7)
     u* = argmin ½ ‖u − u_ref‖²_W  s.t.  A(q_cbf) u ≥ b,  u_lo ≤ u ≤ u_hi
     q_cbf⁺ = q_cbf + Δt u*
 
@@ -157,13 +157,16 @@ class SafetyFilter:
         p = self.params
         return self.barrier.evaluate(endpoints, jacobians, p.gamma, p.phi, p.human_lookahead_s)
 
-    def step(self, q_nom: np.ndarray, dt: float) -> StepResult:
-        """One control step towards ``q_nom`` (n,) over ``dt`` seconds."""
+    def step(self, q_nom: np.ndarray, dt: float, dq_nom: np.ndarray | None = None) -> StepResult:
+        """One control step towards ``q_nom`` (n,) over ``dt`` seconds; ``dq_nom`` (n,) rad/s, the
+        target's velocity, is fed forward (u_ref = dq_nom + K (q_nom − q_cbf); None: K only)."""
         p = self.params
         q = self.q_cbf
         blocks = self.blocks_at(q)
         rows: BarrierRows = blocks[0]  # type: ignore[assignment]
         u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - q)
+        if dq_nom is not None:
+            u_ref = u_ref + np.asarray(dq_nom, dtype=np.float64)
         upper = np.minimum(p.u_max, (self.q_max - q) / dt)
         u_min = -p.u_max if p.u_min is None else p.u_min
         lower = np.minimum(np.maximum(u_min, (self.q_min - q) / dt), upper)

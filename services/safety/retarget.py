@@ -41,6 +41,7 @@ class Retargeter:
     theta_home: np.ndarray
     mirror: bool = False
     _last: np.ndarray = field(init=False, repr=False)
+    _moving: np.ndarray = field(init=False, repr=False)  # joints the last call tracked inside the limits
 
     def __post_init__(self) -> None:
         for name in ("q_home", "q_min", "q_max", "scale", "offset", "theta_home"):
@@ -51,6 +52,7 @@ class Retargeter:
         if (self.q_min > self.q_max).any():
             raise ValueError("retargeting joint limits have q_min > q_max")
         self._last = np.clip(self.q_home + self.offset, self.q_min, self.q_max)
+        self._moving = np.zeros(len(POSE_ANGLE_NAMES), bool)
 
     def __call__(self, theta: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """q_nom (8,) from θ (8,); where ``valid`` is False the previous q_nom entry is kept."""
@@ -58,10 +60,21 @@ class Retargeter:
         source_valid = np.ones(theta.shape, bool) if valid is None else np.asarray(valid, bool)
         if self.mirror:
             theta, source_valid = mirror_pose(theta), source_valid[_MIRROR_PERMUTATION]
-        q = np.clip(self.q_home + self.scale * (theta - self.theta_home) + self.offset, self.q_min, self.q_max)
+        raw = self.q_home + self.scale * (theta - self.theta_home) + self.offset
+        q = np.clip(raw, self.q_min, self.q_max)
         usable = source_valid & np.isfinite(q)
+        self._moving = usable & (raw == q)
         self._last = np.where(usable, q, self._last)
         return self._last.copy()
+
+    def rate(self, theta_rate: np.ndarray) -> np.ndarray:
+        """q̇_nom (8,) rad/s of the newest call's q_nom: S ⊙ θ̇' (θ̇ mirrored like θ), 0 where that
+        call clipped q_nom at a joint limit or held it (angle invalid), or where θ̇ is not finite."""
+        theta_rate = np.asarray(theta_rate, dtype=np.float64)
+        if self.mirror:
+            theta_rate = mirror_pose(theta_rate)
+        dq = self.scale * theta_rate
+        return np.where(self._moving & np.isfinite(dq), dq, 0.0)
 
     def calibrate(self, theta: np.ndarray) -> None:
         """Capture θ_home from the person's current (neutral) pose, in this mode's frame."""

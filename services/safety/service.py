@@ -10,8 +10,11 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    any joint (robot pushed, executor restarted) starts a *resync*: q_nom becomes the measured q until
    q_cbf is within :data:`RESYNC_DONE` of it, so q_cbf moves there through the CBF-QP at ≤ u_max,
    never in a jump;
-3. the newest :class:`~shared.messages.HumanState` (zero-order hold): its capsules become the
-   barrier's external capsules and θ is retargeted to q_nom. No human yet: no external capsules,
+3. the newest :class:`~shared.messages.HumanState`: its capsules become the barrier's external
+   capsules (held until the next one) and θ is retargeted to q_nom, θ̇ to q̇_nom (S ⊙ θ̇, 0 where
+   clipped or invalid); between camera frames q_nom is extrapolated by q̇_nom for at most one frame
+   period (:mod:`services.safety.nominal`), and q̇_nom is fed forward (``safety.feedforward``,
+   u_ref = q̇_nom + K (q_nom − q_cbf)). No human yet: no external capsules,
    q_nom = q_cbf (hold). A capsule that turns invalid is held from memory for
    ``safety.lost_human_hold_s`` (:class:`~services.safety.human_memory.HumanMemory`).
 4. one CBF-QP step with Δt = the nominal period; the command (q_cbf, u*) is checked finite and
@@ -61,6 +64,7 @@ import numpy as np
 from services.safety.assembly import SafetyPipeline, build_pipeline, make_retargeter
 from services.safety.filter import FilterParams, StepResult
 from services.safety.human_memory import HumanMemory
+from services.safety.nominal import NominalTrack
 from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
@@ -106,6 +110,7 @@ _MAX_CONSECUTIVE_ERRORS = 100
 #: the pipeline, so no setting is ever silently ignored.
 _HOT_SAFETY_FIELDS = frozenset(f.name for f in dataclasses.fields(FilterParams)) | {
     "rate_hz", "status_rate_hz", "human_timeout_s", "human_velocity_term", "lost_human_hold_s",
+    "feedforward", "extrapolate_max_s",
 }
 
 
@@ -156,7 +161,8 @@ class SafetyService(ScheduledService):
         self.tick_errors = 0
         self.modes: Counter[str] = Counter()
         self._step_times = np.zeros(_STEP_TIME_WINDOW)
-        self._q_nom = self.pipeline.filter.q_cbf.copy()
+        self._q_nom = self.pipeline.filter.q_cbf.copy()  # retargeted from the newest human state
+        self._nominal = NominalTrack(self._q_nom)  # ... and extrapolated between frames
         self._last_q = self.pipeline.filter.q_cbf.copy()  # last published command
         self._human_used: Received[HumanState] | None = None  # the human state the barrier holds
         self._human_stale = False
@@ -248,6 +254,13 @@ class SafetyService(ScheduledService):
                 self._rejected["config"] += 1
                 log.warning("rejected config update v%d: cannot build the safety pipeline: %s", update.version, exc)
                 return
+        else:
+            try:  # applied in place: the velocity bounds must still fit the robot
+                (pipeline or self.pipeline).spec.check_velocity_bounds(new.safety.u_max, new.safety.u_min)
+            except ValueError as exc:
+                self._rejected["config"] += 1
+                log.warning("rejected config update v%d: %s", update.version, exc)
+                return
         with self._config_lock:
             self._pending = _PendingConfig(update.version, new, pipeline)
 
@@ -260,13 +273,15 @@ class SafetyService(ScheduledService):
         self._sync_joint_state(now)
         human = self._update_human(now)
         pipeline = self.pipeline
+        dq_nom = None
         if self._resync_target is not None:
             q_nom = self._resync_target
         elif human is not None and not self._human_stale and not self._memory.lost:
-            q_nom = self._q_nom
+            q_nom, dq = self._nominal.at(now)
+            dq_nom = dq if self.conf.safety.feedforward else None
         else:  # no person, not a current one, or part of one lost: stop imitating, keep avoiding
             q_nom = pipeline.filter.q_cbf.copy()
-        result = pipeline.filter.step(q_nom, self.period)
+        result = pipeline.filter.step(q_nom, self.period, dq_nom)
 
         q, u, mode = result.q_cbf, result.u, result.mode
         if not (np.isfinite(q).all() and np.isfinite(u).all()):  # the filter promises this never happens
@@ -372,7 +387,10 @@ class SafetyService(ScheduledService):
         use_velocity = safety.human_velocity_term and not stale
         self.pipeline.barrier.set_external(*self._memory.capsules(self.pipeline.pairs.n_external, use_velocity))
         if not stale:  # stale: the tick stops imitating (q_nom = q_cbf)
-            self._q_nom = self.pipeline.retargeter(message.theta, message.theta_valid)
+            retargeter = self.pipeline.retargeter
+            self._q_nom = retargeter(message.theta, message.theta_valid)
+            self._nominal.update(self._q_nom, retargeter.rate(message.theta_rate), message.stamp, received.received,
+                                 safety.extrapolate_max_s, retargeter.q_min, retargeter.q_max)
         self._human_used, self._human_stale, self._human_dirty = received, stale, False
         self._watch("human_lost", self._memory.lost, f"held: {', '.join(self._memory.lost_capsules)}")
         return received
