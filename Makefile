@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed
 help:
 	@echo "make demo     run the stack end to end on this machine and print what happens"
 	@echo "make test     run the whole test suite (real Zenoh, MuJoCo, Pinocchio, QP solvers)"
-	@echo "make bench    run the benchmarks, print a table, write JSON under bench/results/"
+	@echo "make bench    run the benchmarks, print a table, write JSON under bench/results/ and docs/benchmarks.md"
 	@echo "make reliability  watchdogs, rate limits, kill -9 faults, fuzzed input, load: bench/results/reliability.json"
 	@echo "make figures  evaluate the paper's two scenarios with and without the CBF: README figures in docs/figures/"
 
@@ -28,7 +28,7 @@ test: $(STAMP)
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests" >&2; exit 1; fi; exit $$rc
 
 bench: $(STAMP)
-	$(PY) -m safemimic.cli bench
+	$(PY) -m safemimic.cli bench --docs docs/benchmarks.md
 
 # Issue 9's report (under 10 minutes); the quick variant of every check runs in make test.
 reliability: $(STAMP)

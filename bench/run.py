@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import time
 from pathlib import Path
 
-from bench.common import RESULTS_DIR, write_result
+from bench.common import RESULTS_DIR, machine, write_result
+from bench.report import render, verdicts
 
 #: benchmark name → module with ``run(**kwargs) -> dict`` (later issues add safety_step, latency, ...).
 BENCHMARKS: dict[str, str] = {
@@ -26,6 +28,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument("names", nargs="*", choices=[[], *BENCHMARKS], metavar="NAME", help=f"benchmarks to run (default: all of {', '.join(BENCHMARKS)})")
     parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="result folder (default: bench/results)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write all results into one JSON file")
+    parser.add_argument("--docs", type=Path, metavar="FILE", help="also write a Markdown report of this run (make bench: docs/benchmarks.md)")
     return parser
 
 
@@ -40,11 +43,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"  wrote {path}")
     print(f"\n{'benchmark':<16}{'p50':>12}{'p99':>12}  unit  budget")
     for r in results:
-        verdict = " ".join(
-            ("ok" if r[key] <= r[f"budget_{key}"] else "OVER") + f" ({key} ≤ {r[f'budget_{key}']})"
-            for key in ("p50", "p99") if f"budget_{key}" in r
-        )
+        checks = verdicts(r)  # budget_p50 / budget_p99, or with the unit (budget_p99_ms)
+        verdict = " ".join(("ok" if ok else "OVER") + f" ({key} ≤ {budget})" for key, _, budget, ok in checks)
         print(f"{r['name']:<16}{r['p50']:>12.2f}{r['p99']:>12.2f}  {r['unit']:<4}  {verdict}")
+    if args.docs:
+        args.docs.parent.mkdir(parents=True, exist_ok=True)
+        args.docs.write_text(render(results, machine(), time.strftime("%Y-%m-%d %H:%M:%S %z")))
+        print(f"  wrote {args.docs}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0

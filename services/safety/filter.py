@@ -50,6 +50,7 @@ from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
+from services.safety.qp.box import clip_and_step, velocity_box
 from shared.messages import SafetyMode
 
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
@@ -167,9 +168,7 @@ class SafetyFilter:
         u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - q)
         if dq_nom is not None:
             u_ref = u_ref + np.asarray(dq_nom, dtype=np.float64)
-        upper = np.minimum(p.u_max, (self.q_max - q) / dt)
-        u_min = -p.u_max if p.u_min is None else p.u_min
-        lower = np.minimum(np.maximum(u_min, (self.q_min - q) / dt), upper)
+        lower, upper = velocity_box(q, self.q_min, self.q_max, p.u_min, p.u_max, dt)
         if self.enforce:
             A = np.vstack([block.A for block in blocks])
             b = np.concatenate([block.b for block in blocks])
@@ -205,13 +204,15 @@ class SafetyFilter:
                 relaxed = gave_way[: len(rows.b)]
             else:
                 u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
-        u = np.minimum(np.maximum(u, lower), upper)  # an iterative solver's tolerance never exceeds u_max
-        q_next = q + dt * u
-        if not np.isfinite(q_next).all():
+        # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within the limits
+        u, q_next = clip_and_step(u, lower, upper, q, dt, self.q_min, self.q_max)
+        if q_next is None:  # not finite
             u, q_next, mode = np.zeros(problem.n), q.copy(), SafetyMode.HOLD
-        self.q_cbf = np.minimum(np.maximum(q_next, self.q_min), self.q_max)
-        person = self.enforce & rows.soft & rows.enabled & (np.nan_to_num(rows.h, nan=np.inf) < 0.0)
-        intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
+        self.q_cbf = q_next
+        intrusion = False
+        if self.enforce and rows.min_h_all < 0.0:  # min over enabled rows: no row inside its margin, no intrusion
+            person = rows.soft & rows.enabled & (rows.h < 0.0)  # a disabled row's h is NaN: never < 0
+            intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
         return StepResult(
             q_cbf=self.q_cbf.copy(), u=u, u_ref=u_ref, mode=mode, rows=rows, active_rows=active,
             qp_time_s=qp_time, qp_status=solution.status, relaxed=relaxed, intrusion=intrusion,

@@ -92,12 +92,19 @@ class CollisionGeometry(Barrier):
         self.row_pair = np.arange(len(pairs))
         self._row_is_self = pairs.is_self
         self._row_capsule = np.asarray(pairs.second)  # the capsule whose validity enables the row
+        self._row_constants()
 
     def _set_rows(self, row_pair: np.ndarray) -> None:
         """Declare the backend's rows: ``row_pair`` (m,) monitored pair of each row."""
         self.row_pair = np.asarray(row_pair, dtype=np.intp)
         self._row_is_self = self.pairs.is_self[self.row_pair]
         self._row_capsule = np.asarray(self.pairs.second)[self.row_pair]
+        self._row_constants()
+
+    def _row_constants(self) -> None:
+        """Per-row arrays that are the same every step (shared by every BarrierRows, never written)."""
+        self._row_soft = ~self._row_is_self
+        self._row_all_enabled = np.ones(len(self._row_capsule), bool)
 
     @property
     def n_rows(self) -> int:
@@ -172,15 +179,16 @@ class CollisionGeometry(Barrier):
 
     def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray) -> BarrierRows:
         """Package the rows, disabling those of missing external capsules."""
-        enabled = self._valid[self._row_capsule]
         if not self._all_enabled:
+            enabled = self._valid[self._row_capsule]
             A[~enabled] = 0.0
             b[~enabled] = DISABLED_B
             h[~enabled] = np.nan
             min_h_all = float(h[enabled].min()) if enabled.any() else float("inf")
         else:
+            enabled = self._row_all_enabled
             min_h_all = float(h.min()) if len(h) else float("inf")
-        return BarrierRows(A=A, b=b, soft=~self._row_is_self, h=h, distance=distance, enabled=enabled,
+        return BarrierRows(A=A, b=b, soft=self._row_soft, h=h, distance=distance, enabled=enabled,
                            is_self=self._row_is_self, min_h_all=min_h_all)
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
@@ -44,14 +45,25 @@ class QPProblem:
 
 @dataclass
 class QPSolution:
-    """A backend's answer: ``u`` (n,) when OPTIMAL, the status, residuals and timing."""
+    """A backend's answer: ``u`` (n,) when OPTIMAL, the status, residuals and timing.
+
+    ``primal_residual`` (max violation of rows and bounds by u) is computed when first read: the
+    filter never needs it, so its step does not pay for it.
+    """
 
     u: np.ndarray | None
     status: QPStatus
     solve_time_s: float
     iterations: int = 0
-    primal_residual: float = float("nan")  # max violation of rows and bounds by u
     active_rows: int = 0  # rows within tolerance of equality at u
+    problem: QPProblem | None = field(default=None, repr=False)  # what u solves (for the residual)
+    slack: np.ndarray | None = field(default=None, repr=False)  # A u − b
+
+    @property
+    def primal_residual(self) -> float:
+        if self.u is None or self.problem is None or self.slack is None:
+            return float("nan")
+        return self.problem.violation(self.u, self.slack)
 
 
 class QPBackend(abc.ABC):
@@ -67,16 +79,10 @@ class QPBackend(abc.ABC):
 
     def _finish(self, problem: QPProblem, u: np.ndarray | None, status: QPStatus, seconds: float, iterations: int) -> QPSolution:
         """Common post-processing: reject non-finite output, compute residual and active rows."""
-        if u is None or not np.isfinite(u).all():
+        if u is None or not math.isfinite(u.dot(u)):  # NaN/Inf (or an absurd |u| > 1e154) anywhere
             return QPSolution(None, QPStatus.FAILED if status is QPStatus.OPTIMAL else status, seconds, iterations)
         if status is not QPStatus.OPTIMAL:
             return QPSolution(None, status, seconds, iterations)
-        slack = problem.A @ u - problem.b
-        return QPSolution(
-            u=u,
-            status=status,
-            solve_time_s=seconds,
-            iterations=iterations,
-            primal_residual=problem.violation(u, slack),
-            active_rows=int(np.count_nonzero(slack <= self.active_tol)),
-        )
+        slack = problem.A @ u
+        slack -= problem.b
+        return QPSolution(u, status, seconds, iterations, int(np.count_nonzero(slack <= self.active_tol)), problem, slack)

@@ -2,61 +2,138 @@
 
 from __future__ import annotations
 
+import math
+import os
 import time
+from pathlib import Path
 
-import daqp
-import numpy as np
+# numba caches compiled code on disk: as services.safety.barriers.kernel, in the user's cache folder
+os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "safemimic" / "numba"))
 
-from services.safety.qp.base import QPBackend, QPProblem, QPSolution, QPStatus
+import daqp  # noqa: E402
+import numpy as np  # noqa: E402
+from numba import njit  # noqa: E402
+
+from services.safety.qp.base import QPBackend, QPProblem, QPSolution, QPStatus  # noqa: E402
 
 _INF = 1e30  # DAQP treats |bound| ≥ 1e30 as infinite
+#: DAQP's constraint flags (``sense``; include/constants.h): bit 1 = in the working set (active),
+#: bit 2 = active at its *lower* bound (clear: at its upper bound)
+DAQP_ACTIVE = 1
+DAQP_LOWER = 2
+#: a multiplier beyond ±this marks its constraint active (DAQP's own daqp_dual_init_active threshold)
+_DUAL_TOL = 1e-12
+
+
+@njit(cache=True, nogil=True)
+def _warm_sense(lam, tol, sense):  # pragma: no cover - compiled
+    for i in range(lam.shape[0]):
+        if lam[i] > tol:
+            sense[i] = DAQP_ACTIVE
+        elif lam[i] < -tol:
+            sense[i] = DAQP_ACTIVE | DAQP_LOWER
+        else:
+            sense[i] = 0
+
+
+def warm_sense(lam: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """DAQP ``sense`` flags of the active set of multipliers ``lam`` (DAQP's sign convention:
+    λ > 0 upper bound active → ACTIVE, λ < 0 lower bound active → ACTIVE | LOWER, else 0)."""
+    sense = np.zeros(lam.shape[0], dtype=np.intc) if out is None else out
+    _warm_sense(lam, _DUAL_TOL, sense)
+    return sense
+
+
+@njit(cache=True, nogil=True)
+def _pack(neg_w, u_ref, lower_u, upper_u, b, f, upper, lower):  # pragma: no cover - compiled
+    """f = −W u_ref; DAQP's bounds: the simple bounds first, then the rows' lower bounds b."""
+    n = u_ref.shape[0]
+    for j in range(n):
+        f[j] = neg_w[j] * u_ref[j]
+        upper[j] = upper_u[j]
+        lower[j] = lower_u[j]
+    for i in range(b.shape[0]):
+        lower[n + i] = b[i]
+
+
+@njit(cache=True, nogil=True)
+def _rows_slack(A, b, u, tol, slack):  # pragma: no cover - compiled
+    """slack = A u − b; returns the rows with slack ≤ tol (active)."""
+    active = 0
+    for i in range(A.shape[0]):
+        acc = 0.0
+        for j in range(A.shape[1]):
+            acc += A[i, j] * u[j]
+        slack[i] = acc - b[i]
+        if slack[i] <= tol:
+            active += 1
+    return active
 
 
 class DaqpBackend(QPBackend):
     """min ½ uᵀHu + fᵀu with H = diag(w), f = −W u_ref; simple bounds first, then rows A u ≥ b.
 
-    Warm start: the previous solution's active set is passed as ``sense`` = 1 (active) flags
-    when the problem size is unchanged.
+    Warm start (``warm_start``, on by default): when the problem size is unchanged, the previous
+    solution's active set is passed as DAQP ``sense`` flags, each active constraint marked at the
+    bound its multiplier's sign says (:func:`warm_sense`; a row A_i u ≥ b_i is DAQP's lower bound).
+    A warm solve that fails is repeated cold, so the answer never depends on the warm start.
     """
 
     name = "daqp"
 
-    def __init__(self, iter_limit: int = 1000, primal_tol: float = 1e-9) -> None:
+    def __init__(self, iter_limit: int = 1000, primal_tol: float = 1e-9, warm_start: bool = True) -> None:
         self._settings = {"iter_limit": iter_limit, "primal_tol": primal_tol}
-        self._sense: np.ndarray | None = None
+        self.warm_start = warm_start
+        self._warm = False  # _sense holds a usable active set
         self._w: np.ndarray | None = None
+        self._w_src: np.ndarray | None = None  # the weights array H was last checked against
         self._H = np.empty((0, 0))
+        self._neg_w = np.empty(0)
         self._upper = np.empty(0)
         self._lower = np.empty(0)
+        self._sense = np.zeros(0, dtype=np.intc)
+        self._cold = np.zeros(0, dtype=np.intc)
 
     def _buffers(self, problem: QPProblem) -> None:
-        """(Re)build H and the bound vectors only when the weights or the sizes change."""
+        """(Re)build H only when the weights change (the same array object as last time counts as
+        unchanged: FilterParams are replaced, never mutated) and the bound vectors when the sizes do."""
         n, m = problem.n, problem.m
-        if self._w is None or self._w.shape != problem.w.shape or not np.array_equal(self._w, problem.w):
-            self._w = problem.w.copy()
-            self._H = np.diag(self._w)
+        w = problem.w
+        if w is not self._w_src:
+            if self._w is None or not np.array_equal(self._w, w):
+                self._w = w.copy()
+                self._H = np.diag(self._w)
+                self._neg_w = -self._w
+            self._w_src = w
         if self._upper.shape[0] != n + m:
             self._upper = np.full(n + m, _INF)
             self._lower = np.empty(n + m)
-            self._sense = np.zeros(n + m, dtype=np.int32)
+            self._sense = np.zeros(n + m, dtype=np.intc)
+            self._cold = np.zeros(n + m, dtype=np.intc)
+            self._warm = False
 
     def solve(self, problem: QPProblem) -> QPSolution:
         start = time.perf_counter()
-        n = problem.n
         self._buffers(problem)
-        H = self._H
-        f = -problem.w * problem.u_ref
-        upper, lower = self._upper, self._lower
-        upper[:n] = problem.upper
-        lower[:n] = problem.lower
-        lower[n:] = problem.b
-        if self._sense is None:
-            self._sense = np.zeros(upper.shape[0], dtype=np.int32)
-        x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._sense, **self._settings)
+        H, upper, lower = self._H, self._upper, self._lower
+        f = np.empty(problem.n)
+        _pack(self._neg_w, problem.u_ref, problem.lower, problem.upper, problem.b, f, upper, lower)
+        warm = self._warm and self.warm_start
+        x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._sense if warm else self._cold,
+                                          **self._settings)
+        iterations = info["iterations"]
+        if warm and exitflag not in (1, 2):  # e.g. the old working set is overdetermined now
+            x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._cold, **self._settings)
+            iterations += info["iterations"]
         if exitflag in (1, 2):
-            status = QPStatus.OPTIMAL
-            self._sense = (info["lam"] != 0.0).astype(np.int32)
-        else:
-            status = QPStatus.INFEASIBLE if exitflag == -1 else QPStatus.FAILED
-            self._sense = None
-        return self._finish(problem, x, status, time.perf_counter() - start, int(info["iterations"]))
+            _warm_sense(info["lam"], _DUAL_TOL, self._sense)
+            self._warm = True
+            seconds = time.perf_counter() - start
+            if not math.isfinite(x.dot(x)):  # NaN/Inf (or an absurd |u| > 1e154) anywhere
+                return QPSolution(None, QPStatus.FAILED, seconds, iterations)
+            slack = np.empty(problem.m)
+            active = _rows_slack(problem.A, problem.b, x, self.active_tol, slack)
+            return QPSolution(x, QPStatus.OPTIMAL, seconds, iterations, active, problem, slack)
+        self._warm = False
+        status = QPStatus.INFEASIBLE if exitflag == -1 else QPStatus.FAILED
+        return self._finish(problem, x, status, time.perf_counter() - start, iterations)
