@@ -317,6 +317,7 @@ def test_a_person_inside_the_forearm_is_reported_as_intrusion_and_relaxed_pairs_
         during = live.rec.statuses_since(start)
     finally:
         humans.stop()
+    live.rec.wait_status(lambda s: s.human_stale, timeout=3)  # leave the service as the next test expects
     intrusions = [s for s in during if s.person_intrusion]
     relaxed = [s for s in during if s.relaxed_pairs]
     assert intrusions, sorted({s.mode.value for s in during})
