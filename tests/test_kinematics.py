@@ -450,9 +450,11 @@ def test_missing_model_file(spec: RobotSpec, tmp_path: Path) -> None:
 
 def test_missing_joint_is_named(spec: RobotSpec) -> None:
     joints = list(spec.imitation_joints)
+    renamed = joints[4]
     joints[4] = "left_elbow_pitch_joint"
+    limits = {("left_elbow_pitch_joint" if name == renamed else name): v for name, v in spec.joint_velocity_limits.items()}
     with pytest.raises(KinematicsError, match="left_elbow_pitch_joint"):
-        RobotKinematics(_with(spec, imitation_joints=joints))
+        RobotKinematics(_with(spec, imitation_joints=joints, joint_velocity_limits=limits))
     with pytest.raises(KinematicsError, match="left_tail_joint"):
         RobotKinematics(_with(spec, home={**spec.home, "left_tail_joint": 0.1}))
 
