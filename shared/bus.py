@@ -331,6 +331,13 @@ class Bus:
     def session(self) -> zenoh.Session:
         return self._session
 
+    @property
+    def source_id(self) -> str:
+        """``service@zid``: the ``source`` this session's publishers stamp. The Zenoh session id makes it
+        unique per process, so two instances of one service (a restart overlapping the old one, two
+        config APIs on one bus) are ordered as two sources, never one refusing the other's messages."""
+        return f"{self.service[:31]}@{self._session.zid()}"
+
     # pub/sub ---------------------------------------------------------------------------------
     def publisher(self, topic: str, robot_id: str | None = None) -> TypedPublisher[Message]:
         """A typed publisher on ``topic`` (a key of :data:`TOPICS`), of this or another robot."""
@@ -339,7 +346,7 @@ class Bus:
             topic_key(robot_id or self.robot_id, topic), congestion_control=zenoh.CongestionControl.DROP, express=True
         )
         self._entities.append(publisher)
-        return TypedPublisher(publisher, message_type, self.service)
+        return TypedPublisher(publisher, message_type, self.source_id)
 
     def subscribe(
         self, topic: str, callback: Callable[[Message], None], robot_id: str | None = None
