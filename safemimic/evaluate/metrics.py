@@ -77,9 +77,6 @@ def _length(value: float) -> float | None:
     return round(float(value), 6) + 0.0 if np.isfinite(value) else None  # + 0.0: no "-0.0"
 
 
-def _min_h(h: np.ndarray, columns: np.ndarray) -> float | None:
-    values = h[:, columns]
-    return _length(np.nanmin(values)) if columns.any() and not np.isnan(values).all() else None
 
 
 def _rms(error: np.ndarray) -> float:
@@ -92,6 +89,7 @@ def free_steps(cbf: Episode) -> np.ndarray:
 
 
 def _nanmin(values: np.ndarray) -> float | None:
+    """The smallest non-NaN value (rounded), or None when there is none."""
     return _length(np.nanmin(values)) if values.size and not np.isnan(values).all() else None
 
 
@@ -125,8 +123,8 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
     qp = np.percentile(ep.qp_ms, [50, 99])
     nonfinite = sum(int(np.count_nonzero(~np.isfinite(a))) for a in (ep.q_cbf, ep.u, ep.q_sim))
     metrics = {
-        "min_h_self": _min_h(ep.h, is_self),
-        "min_h_human": _min_h(ep.h, ~is_self),
+        "min_h_self": _nanmin(ep.h[:, is_self]),
+        "min_h_human": _nanmin(ep.h[:, ~is_self]),
         "frames_h_negative": int(np.count_nonzero(negative.any(axis=1))),
         "contacts_robot_robot": ep.tally.robot_robot.steps,
         "contacts_robot_human": ep.tally.robot_human.steps,
