@@ -18,6 +18,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -265,6 +266,14 @@ def load_robot_spec(path: str | Path) -> RobotSpec:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise RobotSpecError(f"cannot read robot spec {path}: {exc}") from exc
+    return _parse_robot_spec(path, text)
+
+
+@functools.lru_cache(maxsize=16)
+def _parse_robot_spec(path: Path, text: str) -> RobotSpec:
+    """:func:`load_robot_spec` of a file's ``text`` (cached on path and content: a YAML parse costs
+    ≈ 50 ms of pure Python, paid again at every pipeline swap, on a thread that competes with the
+    control loop for the GIL; a RobotSpec is frozen, so the cached one can be shared)."""
     try:
         raw: Any = yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -1,0 +1,33 @@
+"""How a reliability check reports: behaviour and timing budgets, and the machine's wake-up probe."""
+
+from __future__ import annotations
+
+import json
+
+from bench.common import WAKE_P99_MAX_MS, wake_latency
+from bench.reliability import CheckResult
+
+
+def test_a_check_passes_only_when_it_behaved_and_met_every_budget() -> None:
+    fine = CheckResult("kill9_safety", True, {"max_resume_s": 1.2}, {"resume_within_2s": True})
+    slow = CheckResult("kill9_safety", True, {"max_resume_s": 2.4}, {"resume_within_2s": False})
+    broken = CheckResult("kill9_safety", False, {"max_resume_s": None}, {"resume_within_2s": False})
+    no_budget = CheckResult("fuzz_codec", True, {"messages": 10})
+    assert fine.passed and no_budget.passed
+    assert not slow.passed and slow.behaved
+    assert not broken.passed and not broken.behaved
+    assert str(fine).startswith("PASS kill9_safety")
+    assert str(slow).startswith("BUDGET MISSED (resume_within_2s) kill9_safety")
+    assert str(broken).startswith("FAIL kill9_safety")
+    row = json.loads(json.dumps(slow.to_json()))
+    assert row == {"name": "kill9_safety", "passed": False, "behaved": True,
+                   "budgets": {"resume_within_2s": False}, "max_resume_s": 2.4}
+
+
+def test_wake_latency_measures_lateness_and_says_whether_the_machine_keeps_time() -> None:
+    wake = wake_latency(0.3)
+    assert set(wake) == {"p50_ms", "p99_ms", "max_ms", "steal_pct", "scheduling", "keeps_time"}
+    assert 0.0 <= wake["p50_ms"] <= wake["p99_ms"] <= wake["max_ms"]
+    assert wake["keeps_time"] == (wake["p99_ms"] <= WAKE_P99_MAX_MS)
+    assert wake["steal_pct"] is None or 0.0 <= wake["steal_pct"] <= 100.0
+    assert wake["scheduling"]
