@@ -22,8 +22,10 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# pytest exit 5 means "no tests collected": that is a failure here, never a silent pass.
+# The layers first (import-linter contracts in pyproject.toml: shared <- services <- safemimic), then
+# the tests. pytest exit 5 means "no tests collected": that is a failure here, never a silent pass.
 test: $(STAMP)
+	@$(VENV)/bin/lint-imports
 	@$(PY) -m pytest -q; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests" >&2; exit 1; fi; exit $$rc
 

@@ -1,8 +1,5 @@
 """safemimic: safe human-to-humanoid motion imitation (the ``safemimic`` command)."""
 
-from importlib.metadata import PackageNotFoundError, version
+from shared.version import VERSION as __version__
 
-try:
-    __version__ = version("safemimic")
-except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0.0.0+source"
+__all__ = ["__version__"]

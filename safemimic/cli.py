@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
-import os
 import sys
 
-from safemimic import __version__
+from shared.entrypoint import run_command
+from shared.version import VERSION
 
 #: subcommand → (module, one-line help). Later issues add perception, safety, executor, ...
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -41,7 +40,7 @@ def _top_parser() -> argparse.ArgumentParser:
         epilog="Run 'safemimic COMMAND --help' for the options of a command.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"safemimic {__version__}")
+    parser.add_argument("--version", action="version", version=f"safemimic {VERSION}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
     for name, (_, help_text) in SUBCOMMANDS.items():
         sub.add_parser(name, help=help_text, add_help=False)
@@ -57,18 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     name, rest = argv[0], argv[1:]
     module = importlib.import_module(SUBCOMMANDS[name][0])
-    parser = module.build_parser(argparse.ArgumentParser(prog=f"safemimic {name}"))
-    args = parser.parse_args(rest)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    code = int(module.run(args) or 0)
-    bus = sys.modules.get("shared.bus")  # only where a Zenoh session was used
-    if bus is not None and bus.hung_closes():
-        # A session close that hung (its router went away at the same moment) would keep the
-        # process alive: leave now, output flushed.
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    return code
+    return run_command(name, module.build_parser, module.run, rest)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ import yaml
 
 from services.perception.placement import parse_placement
 from services.perception.scenarios import get_scenario, scenario_recording
-from services.perception.synthetic import Body
+from shared.body import Body
 from shared.config import DEFAULT_CONFIG_PATH, PerceptionConfig, load_config
 from shared.skeleton import Recording, write_recording
 

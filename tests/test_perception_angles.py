@@ -11,7 +11,8 @@ import pytest
 from services.perception.angles import PoseEstimator, torso_axes
 from services.perception.placement import Placement
 from services.perception.scenarios import SCENARIOS, scenario_frames
-from services.perception.synthetic import Body, skeleton
+from services.perception.synthetic import skeleton
+from shared.body import Body
 from shared.config import PoseAnglesConfig
 from shared.names import KEYPOINT_INDEX as K
 from shared.names import POSE_ANGLE_NAMES

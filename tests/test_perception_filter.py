@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from services.perception.capsules import HumanCapsules, capsule_radii
+from services.perception.capsules import HumanCapsules
+from shared.body import capsule_radii
 from services.perception.pipeline import PerceptionPipeline
 from services.perception.point_filter import PointFilter
 from services.perception.stream import SkeletonFrame

@@ -17,7 +17,8 @@ from services.perception.placement import Placement, initial_pose, parse_placeme
 from services.perception.point_filter import PointFilter
 from services.perception.scenarios import SCENARIOS, get_scenario, scenario_frames, scenario_recording
 from services.perception.sources import SourceUnavailable, open_source
-from services.perception.synthetic import Body, skeleton
+from services.perception.synthetic import skeleton
+from shared.body import Body
 from shared.config import HumanConfig, PerceptionConfig
 from shared.geometry import segment_closest_points
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX as K, KEYPOINT_NAMES

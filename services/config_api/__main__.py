@@ -1,6 +1,7 @@
 """``python -m services.config_api``: the config API (same as ``safemimic config-api``)."""
 import sys
 
-from safemimic.cli import main
+from services.config_api.main import build_parser, run
+from shared.entrypoint import run_command
 
-sys.exit(main(["config-api", *sys.argv[1:]]))
+sys.exit(run_command("config-api", build_parser, run, sys.argv[1:]))

@@ -11,12 +11,12 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
-from safemimic import __version__
 from services.config_api.dependencies import ApiContext
 from services.config_api.limits import BodySizeLimit
 from services.config_api.routers import calibrate, config, console, status
 from services.config_api.routers.console import STATIC_DIR
 from services.config_api.store import StoreError
+from shared.version import VERSION
 
 
 async def _store_error(request: Request, exc: Exception) -> JSONResponse:
@@ -34,7 +34,7 @@ def create_app(context: ApiContext) -> FastAPI:
     """The app serving ``context`` (built by the caller, which owns the bus and the store)."""
     app = FastAPI(
         title="safemimic config API",
-        version=__version__,
+        version=VERSION,
         description=(
             "The single writer of the stack's parameters (DESIGN §1). Writes need "
             "`Authorization: Bearer <token>`; every accepted change is persisted with a new version, "

@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from services.perception.point_filter import FilteredSkeleton
+from shared.body import capsule_radii
 from shared.config import HumanConfig
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX
 
@@ -45,13 +46,6 @@ _TORSO = CAPSULE_NAMES.index("torso")
 _PELVIS = _K["pelvis"]
 _SHOULDERS = [_K["left_shoulder"], _K["right_shoulder"]]
 N_CAPSULES = len(CAPSULE_NAMES)
-
-
-def capsule_radii(human: HumanConfig) -> np.ndarray:
-    """(7,) radii (m) in CAPSULE_NAMES order."""
-    by_part = {"torso": human.torso_radius, "upper_arm": human.upper_arm_radius,
-               "forearm": human.forearm_radius, "thigh": human.thigh_radius}
-    return np.array([by_part[name.removeprefix("left_").removeprefix("right_")] for name in CAPSULE_NAMES])
 
 
 class HumanCapsules:

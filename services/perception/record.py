@@ -12,7 +12,7 @@ import sys
 
 from services.perception.placement import parse_placement
 from services.perception.scenarios import SCENARIOS, get_scenario, scenario_recording
-from services.perception.synthetic import Body
+from shared.body import Body
 from shared.config import ConfigError, load_config
 from shared.skeleton import write_recording
 

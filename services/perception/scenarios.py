@@ -3,7 +3,7 @@
 A scenario is a periodic θ(t) (:data:`shared.names.POSE_ANGLE_NAMES` order, radians, the
 convention of :mod:`services.perception.angles`): keyframes joined by cosine easing (zero
 velocity at every keyframe, C¹), plus optional oscillations. :func:`scenario_frames` turns it
-into keypoints of a :class:`~services.perception.synthetic.Body` placed in the robot frame, so a
+into keypoints of a :class:`~shared.body.Body` placed in the robot frame, so a
 scenario can be streamed, written as a recording and compared against the angles it was made of.
 
 Poses name angles per arm as ``left_*``/``right_*``, or ``near_*``/``far_*`` for the arm on the
@@ -19,7 +19,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.perception.placement import Placement
-from services.perception.synthetic import DEFAULT_PAPER_ZONE, Body, skeleton
+from services.perception.synthetic import DEFAULT_PAPER_ZONE, skeleton
+from shared.body import Body
 from shared.names import KEYPOINT_NAMES
 from shared.skeleton import Recording
 

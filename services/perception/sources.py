@@ -15,7 +15,7 @@ import numpy as np
 from services.perception.placement import parse_placement, place_recording
 from services.perception.scenarios import get_scenario, scenario_frames
 from services.perception.stream import PlayedSource, SkeletonSource
-from services.perception.synthetic import Body
+from shared.body import Body
 from shared.config import PerceptionConfig, SkeletonSourceName, resolve_config_path
 from shared.skeleton import RecordingError, read_recording
 

@@ -13,17 +13,17 @@ order, radians) so that the estimators of :mod:`services.perception.angles` read
 * legs hang straight below the hips; the pelvis stays level (a torso lean is a waist bend).
 
 The person stands at the origin of its own frame (x forward, y left, z up, floor z = 0), pelvis
-above x = y = 0, facing +x; :class:`Body` sets the proportions.
+above x = y = 0, facing +x; :class:`shared.body.Body` sets the proportions.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from services.perception.angles import smoothstep
+from shared.body import Body
 from shared.config import PoseAnglesConfig
 from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
 
@@ -32,28 +32,6 @@ _UPRIGHT = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 _BISECTION_STEPS = 60
 #: The estimator's default paper zone (config ``perception.angles.paper_zone``).
 DEFAULT_PAPER_ZONE = PoseAnglesConfig().paper_zone
-
-
-@dataclass(frozen=True)
-class Body:
-    """Segment lengths (m) of the synthetic person; defaults: a 1.75 m adult."""
-
-    shoulder_width: float = 0.36  # between the shoulder joint centres (people: 0.20–0.37)
-    hip_width: float = 0.18
-    pelvis_height: float = 0.95
-    torso_length: float = 0.50  # pelvis → shoulder centre
-    neck: float = 0.04  # shoulder centre → spine_chest (base of the neck)
-    head: float = 0.10  # spine_chest → head (skull base)
-    upper_arm: float = 0.29
-    forearm: float = 0.26
-    hip_drop: float = 0.04  # pelvis → hip joints, downwards
-    thigh: float = 0.42
-    shank: float = 0.42
-
-    def __post_init__(self) -> None:
-        for name, value in self.__dict__.items():
-            if not (math.isfinite(value) and 0.0 < value < 2.0):
-                raise ValueError(f"body {name} must be in (0, 2) m, got {value}")
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:

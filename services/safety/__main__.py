@@ -1,6 +1,7 @@
 """``python -m services.safety``: the safety service (same as ``safemimic safety``)."""
 import sys
 
-from safemimic.cli import main
+from services.safety.service import build_parser, run
+from shared.entrypoint import run_command
 
-sys.exit(main(["safety", *sys.argv[1:]]))
+sys.exit(run_command("safety", build_parser, run, sys.argv[1:]))

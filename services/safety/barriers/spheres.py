@@ -33,10 +33,9 @@ import math
 
 import numpy as np
 
-from services.perception.capsules import capsule_radii
-from services.perception.synthetic import Body
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry, swept_witness_points
 from services.safety.pairs import N_ROBOT, PairSet
+from shared.body import Body, capsule_radii
 from shared.config import HumanConfig
 from shared.names import CAPSULE_NAMES
 
@@ -48,7 +47,7 @@ def intervals(length: float, radius: float, k: int) -> int:
 
 def nominal_human(human: HumanConfig) -> np.ndarray:
     """(7, 2) nominal (length, radius) of the human capsules (CAPSULE_NAMES order): the segments of
-    the synthetic 1.75 m adult (:class:`~services.perception.synthetic.Body`; the forearm reaches
+    the synthetic 1.75 m adult (:class:`~shared.body.Body`; the forearm reaches
     ``hand_extension`` past the wrist, the torso from the pelvis to the base of the neck) with the
     configured radii."""
     body = Body()

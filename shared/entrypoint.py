@@ -1,0 +1,38 @@
+"""Run one command: parse its options, configure logging, run it, leave cleanly.
+
+``safemimic COMMAND ...`` (:mod:`safemimic.cli`) and each service's own entry point
+(``python -m services.X ...``, its ``__main__.py``) both come here, so a service runs the same
+way with or without the ``safemimic`` package. A command module provides
+``build_parser(parser) -> parser`` and ``run(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Callable, Sequence
+
+LOG_FORMAT = "%(asctime)s %(name)s %(levelname)s %(message)s"
+
+
+def run_command(
+    name: str,
+    build_parser: Callable[[argparse.ArgumentParser], argparse.ArgumentParser],
+    run: Callable[[argparse.Namespace], int | None],
+    argv: Sequence[str],
+) -> int:
+    """Parse ``argv`` with the command's parser (``prog`` ``safemimic NAME``), log at INFO, run it;
+    its exit code. A Zenoh session close that hung (its router went away at the same moment)
+    would keep the process alive: then the output is flushed and the process leaves at once."""
+    parser = build_parser(argparse.ArgumentParser(prog=f"safemimic {name}"))
+    args = parser.parse_args(list(argv))
+    logging.basicConfig(level=logging.INFO, format=LOG_FORMAT)
+    code = int(run(args) or 0)
+    bus = sys.modules.get("shared.bus")  # imported only by commands that opened a Zenoh session
+    if bus is not None and bus.hung_closes():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
