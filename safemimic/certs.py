@@ -38,6 +38,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from shared.errors import SafemimicError
+
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"
 CA_DAYS = 3650
@@ -46,7 +48,7 @@ CERT_DAYS = 825
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}$")
 
 
-class CertError(ValueError):
+class CertError(SafemimicError, ValueError):
     """A certificate cannot be made as asked (missing CA, existing files, bad name); the message says why."""
 
 

@@ -19,6 +19,7 @@ import msgpack
 import numpy as np
 from pydantic import ValidationError
 
+from shared.errors import SafemimicError
 from shared.messages import MESSAGE_TYPES, Message
 
 ND_EXT = 1
@@ -34,7 +35,7 @@ _DIMS = tuple(struct.Struct(f"<{n}I") for n in range(_MAX_ARRAY_DIMS + 1))
 M = TypeVar("M", bound=Message)
 
 
-class CodecError(Exception):
+class CodecError(SafemimicError):
     """Base of every decoding/encoding failure."""
 
 

@@ -18,6 +18,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from shared.errors import SafemimicError
 from shared.names import CAPSULE_NAMES, IMITATION_JOINT_NAMES
 
 ENV_PREFIX = "SAFEMIMIC__"
@@ -34,7 +35,7 @@ CapsuleName = Literal[CAPSULE_NAMES]  # type: ignore[valid-type]
 CapsuleRadius = Annotated[float, Field(gt=0, le=0.5)]
 
 
-class ConfigError(ValueError):
+class ConfigError(SafemimicError, ValueError):
     """A configuration file, override or update is invalid; the message names the field."""
 
 

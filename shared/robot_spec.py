@@ -27,6 +27,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from shared.config import CONFIG_DIR, StackConfig, resolve_config_path
+from shared.errors import SafemimicError
 from shared.names import CAPSULE_NAMES, IMITATION_JOINT_NAMES
 
 __all__ = [
@@ -70,7 +71,7 @@ DEFAULT_SELF_PAIRS: tuple[tuple[str, str], ...] = (
 )
 
 
-class RobotSpecError(ValueError):
+class RobotSpecError(SafemimicError, ValueError):
     """A robot spec file is missing, unreadable or invalid (message names the file)."""
 
 

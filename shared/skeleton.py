@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shared.errors import SafemimicError
 from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
 
 #: Segments used to check units: a human upper arm/forearm/thigh is 0.15–0.6 m long.
@@ -23,7 +24,7 @@ _MAX_SEGMENT_M = 1.0
 _MAX_COORD_M = 100.0
 
 
-class RecordingError(ValueError):
+class RecordingError(SafemimicError, ValueError):
     """A recording file is unreadable or violates the format; the message says what and where."""
 
 

@@ -18,6 +18,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from services.config_api.errors import ConfigApiError
 from shared.config import ConfigError, StackConfig, validate_config
 
 STORE_FORMAT = "safemimic.config-store/1"
@@ -25,7 +26,7 @@ STORE_FORMAT = "safemimic.config-store/1"
 LOCAL_SECTIONS = ("robot_id", "bus", "api")
 
 
-class StoreError(RuntimeError):
+class StoreError(ConfigApiError, RuntimeError):
     """The store file cannot be read, parsed or written (the message names the file)."""
 
 

@@ -10,6 +10,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from services.config_api.errors import ConfigApiError
 from services.config_api.store import write_atomic
 
 TOKEN_ENV = "SAFEMIMIC_API_TOKEN"
@@ -18,7 +19,7 @@ TOKEN_FILE_NAME = "api_token"
 MIN_TOKEN_LENGTH = 16
 
 
-class TokenError(RuntimeError):
+class TokenError(ConfigApiError, RuntimeError):
     """The configured or stored token is unusable (the message says where it came from)."""
 
 

@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from services.executor.errors import ExecutorStartError
 from services.executor.g1_frames import lowcmd_crc, new_lowcmd, seal
 from services.executor.g1_layout import (
     ARM_SDK_HOLD_GAINS,
@@ -80,7 +81,7 @@ _WAIST_ROLL_PITCH = frozenset({13, 14})
 _LOCKED_RANGE = 0.01
 
 
-class G1StartError(RuntimeError):
+class G1StartError(ExecutorStartError, RuntimeError):
     """The G1 executor will not start (no robot state, unknown or unfit variant); the message says
     what to check or configure."""
 

@@ -42,6 +42,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from services.executor.contacts import ContactTally
+from services.executor.errors import ExecutorStartError
 from services.executor.interface import Executor
 from shared.bus import Bus, Latest, Received
 from shared.cli_args import add_bus_arguments, config_from_args
@@ -82,17 +83,6 @@ def build_executor(conf: StackConfig) -> Executor:
     from services.executor.sim import PDGains
 
     return MujocoExecutor(spec, PDGains.from_config(c), 1.0 / c.rate_hz, c.viewer)
-
-
-def startup_errors(backend: ExecutorBackend) -> tuple[type[Exception], ...]:
-    """The exceptions with which a backend refuses to start (reported in one line, exit code 2)."""
-    if backend is ExecutorBackend.G1:
-        from services.executor.g1_control import G1StartError
-
-        return (G1StartError,)
-    from services.executor.sim import SimModelError
-
-    return (SimModelError,)
 
 
 class ExecutorService(ScheduledService):
@@ -324,14 +314,13 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         conf = config_from_args(args, extra)
-        refusals = (ConfigError, RobotSpecError, *startup_errors(conf.executor.backend))
     except (ConfigError, RobotSpecError) as exc:
         print(f"safemimic executor: {exc}", file=sys.stderr)
         return 2
     try:
         with stop_on_signals() as stop:
             counters = main(conf, stop, args.duration)
-    except refusals as exc:
+    except (ConfigError, RobotSpecError, ExecutorStartError) as exc:
         print(f"safemimic executor: {exc}", file=sys.stderr)
         return 2
     print(json.dumps({"event": "stopped", "service": SERVICE_NAME, **counters}), flush=True)

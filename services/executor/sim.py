@@ -49,6 +49,7 @@ import mujoco
 import numpy as np
 
 from services.executor.contacts import BodyContact, ContactReport, SurfaceContact
+from services.executor.errors import ExecutorStartError
 from shared.config import ExecutorConfig
 from shared.names import CAPSULE_NAMES
 from shared.robot_spec import RobotSpec
@@ -79,7 +80,7 @@ _SERVO_PREFIX = "servo_"
 _ROBOT, _HUMAN = 1, 2
 
 
-class SimModelError(ValueError):
+class SimModelError(ExecutorStartError, ValueError):
     """The robot model cannot be loaded or does not fit the robot spec (message says why)."""
 
 

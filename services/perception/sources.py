@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.perception.errors import PerceptionError
 from services.perception.placement import parse_placement, place_recording
 from services.perception.scenarios import get_scenario, scenario_frames
 from services.perception.stream import PlayedSource, SkeletonSource
@@ -20,7 +21,7 @@ from shared.config import PerceptionConfig, SkeletonSourceName, resolve_config_p
 from shared.skeleton import RecordingError, read_recording
 
 
-class SourceUnavailable(RuntimeError):
+class SourceUnavailable(PerceptionError, RuntimeError):
     """The configured source cannot be opened (missing file, bad recording, no camera, weights or runtime)."""
 
 

@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
-__all__ = ["KinematicsError", "SafetyError"]
+from shared.errors import SafemimicError
+
+__all__ = ["KinematicsError", "SafetyConfigError", "SafetyError"]
 
 
-class SafetyError(Exception):
+class SafetyError(SafemimicError):
     """Base class of the safety service's own errors."""
+
+
+class SafetyConfigError(SafetyError, ValueError):
+    """A safety setting that cannot be built: an unknown pair preset or QP backend, a self pair
+    that does not name two robot capsules, retargeting values that are not 8 finite numbers or
+    limits that cross, a negative sphere subsampling level. The message names the value."""
 
 
 class KinematicsError(SafetyError, ValueError):

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 import numpy as np
 
+from services.safety.errors import SafetyConfigError
 from shared.names import CAPSULE_NAMES
 
 N_ROBOT = len(CAPSULE_NAMES)
@@ -51,7 +52,7 @@ def make_pair_set(self_pairs: Sequence[tuple[str, str]], n_people: int = 1, max_
     names: list[str] = []
     for a, b in self_pairs:
         if a not in _ROBOT_INDEX or b not in _ROBOT_INDEX or a == b:
-            raise ValueError(f"self pair ({a}, {b}) must name two different robot capsules of {CAPSULE_NAMES}")
+            raise SafetyConfigError(f"self pair ({a}, {b}) must name two different robot capsules of {CAPSULE_NAMES}")
         first.append(_ROBOT_INDEX[a])
         second.append(_ROBOT_INDEX[b])
         names.append(f"{a}|{b}")
@@ -74,7 +75,7 @@ def sized_pair_set(self_pairs: Sequence[tuple[str, str]], n_rows: int) -> PairSe
     n_people = max(1, -(-(n_rows - len(self_pairs)) // (N_ROBOT * N_ROBOT)))
     pairs = make_pair_set(self_pairs, n_people=n_people, max_rows=n_rows)
     if len(pairs) != n_rows:
-        raise ValueError(f"cannot build {n_rows} rows from {len(self_pairs)} self pairs")
+        raise SafetyConfigError(f"cannot build {n_rows} rows from {len(self_pairs)} self pairs")
     return pairs
 
 
@@ -86,7 +87,7 @@ def preset_pair_set(preset: str, default_self_pairs: Sequence[tuple[str, str]]) 
         return make_pair_set(default_self_pairs)
     if preset == "paper72":
         return sized_pair_set(default_self_pairs, 72)
-    raise ValueError(f"unknown pair preset {preset!r}; known: default, paper72")
+    raise SafetyConfigError(f"unknown pair preset {preset!r}; known: default, paper72")
 
 
 def pair_group(robot: str, other: str | None) -> str:

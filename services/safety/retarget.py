@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.safety.errors import SafetyConfigError
 from shared.names import POSE_ANGLE_NAMES
 
 #: θ' = θ[_MIRROR_PERMUTATION] * _MIRROR_SIGN swaps arms and flips the torso roll.
@@ -47,10 +48,10 @@ class Retargeter:
         for name in ("q_home", "q_min", "q_max", "scale", "offset", "theta_home"):
             value = np.asarray(getattr(self, name), dtype=np.float64)
             if value.shape != (len(POSE_ANGLE_NAMES),) or not np.isfinite(value).all():
-                raise ValueError(f"retargeting {name} must be 8 finite numbers, got {value}")
+                raise SafetyConfigError(f"retargeting {name} must be 8 finite numbers, got {value}")
             setattr(self, name, value)
         if (self.q_min > self.q_max).any():
-            raise ValueError("retargeting joint limits have q_min > q_max")
+            raise SafetyConfigError("retargeting joint limits have q_min > q_max")
         self._last = np.clip(self.q_home + self.offset, self.q_min, self.q_max)
         self._moving = np.zeros(len(POSE_ANGLE_NAMES), bool)
 
@@ -80,5 +81,5 @@ class Retargeter:
         """Capture θ_home from the person's current (neutral) pose, in this mode's frame."""
         theta = np.asarray(theta, dtype=np.float64)
         if theta.shape != (8,) or not np.isfinite(theta).all():
-            raise ValueError("calibration needs 8 finite pose angles")
+            raise SafetyConfigError("calibration needs 8 finite pose angles")
         self.theta_home = mirror_pose(theta) if self.mirror else theta.copy()

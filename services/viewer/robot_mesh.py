@@ -20,6 +20,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from services.viewer.errors import ViewerError
 from shared.robot_spec import RobotSpec
 
 #: Geom groups drawn (MuJoCo's viewer shows 0–2 by default; our model's visual class is group 2).
@@ -27,7 +28,7 @@ VISIBLE_GROUPS = (0, 1, 2)
 _SEGMENTS = 16  # tessellation around an axis
 
 
-class RobotMeshError(ValueError):
+class RobotMeshError(ViewerError, ValueError):
     """The MJCF cannot be loaded or does not match the robot description (message says why)."""
 
 

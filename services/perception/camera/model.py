@@ -23,6 +23,7 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from services.perception.errors import PerceptionError
 from shared.config import ConfigError, load_config
 
 #: The wheel the weights come from (any platform's wheel of this version holds the same files).
@@ -54,7 +55,7 @@ LANDMARKER = ModelFile(
 MODEL_FILES = (DETECTOR, LANDMARKER)
 
 
-class ModelError(RuntimeError):
+class ModelError(PerceptionError, RuntimeError):
     """The weights are missing or corrupt, or could not be installed; the message says what to do."""
 
 

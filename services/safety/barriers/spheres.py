@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry, swept_witness_points
+from services.safety.errors import SafetyConfigError
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.body import Body, capsule_radii
 from shared.config import HumanConfig
@@ -93,7 +94,7 @@ class SphereBarrier(CollisionGeometry):
         ``external_nominal`` (E, 2) nominal (length, radius) of the external capsules."""
         super().__init__(pairs, robot_radii, n_joints)
         if k < 0:
-            raise ValueError(f"sphere subsampling level k must be ≥ 0, got {k}")
+            raise SafetyConfigError(f"sphere subsampling level k must be ≥ 0, got {k}")
         self.k = k
         robot_length = np.linalg.norm(robot_capsules[:, 1] - robot_capsules[:, 0], axis=1)
         robot_n = [intervals(L, r, k) for L, r in zip(robot_length, self.robot_radii)]

@@ -6,6 +6,7 @@ A backend's module is imported when first asked for (OSQP brings SciPy: ≈ 0.2 
 
 import importlib
 
+from services.safety.errors import SafetyConfigError
 from services.safety.qp.base import QPBackend, QPProblem, QPSolution, QPStatus
 
 #: backend name → (module, class)
@@ -21,7 +22,7 @@ def make_backend(name: str, **settings: float) -> QPBackend:
     try:
         module, cls = BACKENDS[name]
     except KeyError:
-        raise ValueError(f"unknown QP backend {name!r}; known: {', '.join(BACKENDS)}") from None
+        raise SafetyConfigError(f"unknown QP backend {name!r}; known: {', '.join(BACKENDS)}") from None
     return getattr(importlib.import_module(module), cls)(**settings)
 
 
