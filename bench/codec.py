@@ -1,4 +1,4 @@
-"""Benchmark: encode + validate + decode of a HumanState (budget p50 ≤ 50 µs, DESIGN §8)."""
+"""Benchmark: encode + validate + decode of a HumanState (budget p50 ≤ 50 µs, architecture §8)."""
 
 from __future__ import annotations
 

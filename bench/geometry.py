@@ -1,4 +1,4 @@
-"""Benchmark: the paper's Table I on this CPU, per collision geometry (issue 10, paper §IV-B).
+"""Benchmark: the paper's Table I on this CPU, per collision geometry (paper §IV-B).
 
 For spheres (k = 0, 1), boxes (bounding boxes of the capsules, edges rounded by r/2) and capsules
 (``services.safety.barriers``), on the paper's worst case, the ``paper72`` pair preset: every
@@ -63,7 +63,7 @@ PAPER = {
     "gpu": {"rate_hz": (30.5, 11.549, 3.937, 33.084), "compile_s": (29.4, 184.8, 36.7, 29.4), "solve_s": (0.033, 0.087, 0.254, 0.030)},
 }
 STEPS = 4000
-#: Targets of issue 10: capsules ≥ 1,000× the paper's CPU rate and ≥ 100× its GPU rate; every step < 5 ms.
+#: Targets: capsules ≥ 1,000× the paper's CPU rate and ≥ 100× its GPU rate; every step < 5 ms.
 TARGET_CPU_FACTOR, TARGET_GPU_FACTOR, STEP_BUDGET_MS = 1000.0, 100.0, 5.0
 #: The paper's two scenarios (Figs. 2–3), the person beside the robot as in ``make figures``.
 SCENARIOS = ("cross-arm-reach", "side-by-side-arm-raise")

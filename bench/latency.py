@@ -1,4 +1,4 @@
-"""Benchmark: skeleton published → command published, end to end over loopback (DESIGN §8: p99 ≤ 5 ms).
+"""Benchmark: skeleton published → command published, end to end over loopback (architecture §8: p99 ≤ 5 ms).
 
 Real processes, the command lines of :mod:`safemimic.stack`: ``executor``, ``safety`` and
 ``perception`` (the paper's two scenarios, 30 fps, in a loop), three times:

@@ -1,4 +1,4 @@
-"""Benchmark: one perception step, filter + angles + capsules per frame (budget p50 ≤ 100 µs; DESIGN §8: ≤ 1 ms).
+"""Benchmark: one perception step, filter + angles + capsules per frame (budget p50 ≤ 100 µs; architecture §8: ≤ 1 ms).
 
 Input: the scripted ``wave`` and ``side-by-side-arm-raise`` scenarios (arms overhead, in the
 robot's workspace) at 30 fps with 3 mm Gaussian noise, a single-frame outlier every 50 frames

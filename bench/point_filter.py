@@ -1,6 +1,6 @@
 """Point filter: lag on real motion against jitter on still photographs, EMA against One Euro.
 
-* **lag** (ms): for each development clip (DESIGN §6 ``.npz``, ``$SAFEMIMIC_TEAM_SHARED/data/mocap``
+* **lag** (ms): for each development clip (architecture §6 ``.npz``, ``$SAFEMIMIC_TEAM_SHARED/data/mocap``
   or ``../shared/data/mocap``), the delay d that best aligns the filtered keypoints with the raw
   ones: d* = argmin_d mean_{t,k} ‖x̂_k(t) − x_k(t − d)‖² over d ∈ [0, 200] ms in 1 ms steps (x linearly
   interpolated between frames; the first 0.5 s skipped). Reported per clip and the mean over clips.

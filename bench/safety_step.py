@@ -1,7 +1,7 @@
 """Benchmark: one full safety step (FK + every pair distance and row + QP + integration).
 
-DESIGN §8 budget: p50 ≤ 0.25 ms, p99 ≤ 1 ms with the paper's worst case (72 constraints).
-In the same run (issue 5, "Benchmark"):
+architecture §8 budget: p50 ≤ 0.25 ms, p99 ≤ 1 ms with the paper's worst case (72 constraints).
+In the same run:
 
 * the 72-row step per QP backend (daqp, osqp) on the same trajectory and scene, with the QP share;
 * the floor of the step: forward kinematics with the capsule Jacobians alone
@@ -13,7 +13,7 @@ In the same run (issue 5, "Benchmark"):
 * the step at 400 and 126 rows (more people around the robot); oscbf's published speed is an
   *external* figure (StanfordASL/oscbf README, Morton & Pavone, IROS 2025: "kilohertz speed even
   with over 400 active safety constraints"), quoted beside it, never measured here;
-* mink (DESIGN §10): the same MJCF in MuJoCo, the 7 robot CBF capsules as capsule geoms with the
+* mink (architecture §10): the same MJCF in MuJoCo, the 7 robot CBF capsules as capsule geoms with the
   same endpoints and radii, the human capsules as mocap geoms, ``CollisionAvoidanceLimit`` over
   exactly our pair set + ``ConfigurationLimit`` + ``VelocityLimit`` + a ``PostureTask`` tracking
   q_nom, ``solve_ik`` (DAQP with our iteration limit and tolerance) and ``integrate_inplace``:
@@ -22,10 +22,10 @@ In the same run (issue 5, "Benchmark"):
     removed, its links fixed where they are), the detection distance covering every pair;
   - mink-8 at mink's default detection distance (almost no pair evaluated);
   - **mink-29**: the full 29-joint model with the 21 other joints locked by zero velocity limits
-    (what issue 5 compared against: model size is in that ratio).
+    (the comparison's model size is in that ratio).
 
   Removing joints welds their links to the world, and mink then silently drops every pair of a
-  static link with a (world-parented) mocap person (DESIGN §10): the reduced model gets our full
+  static link with a (world-parented) mocap person (architecture §10): the reduced model gets our full
   pair list back (``pairs_dropped_by_mink`` says how many it had dropped) and the pair counts are
   checked equal.
 
@@ -304,7 +304,7 @@ class MinkAnchor:
 
     ``reduced`` (mink-8): every joint but the 8 imitation joints is removed, their links fixed at
     home: nv = 8 like our filter. Those links are then welded to the world and mink drops their
-    pairs with the (world-parented) mocap people as "parent–child" (DESIGN §10); our full pair
+    pairs with the (world-parented) mocap people as "parent–child" (architecture §10); our full pair
     list is given back to the limit (``pairs_dropped_by_mink`` counts what it had dropped; such a
     pair's row has a zero gradient, like ours).
 
@@ -562,7 +562,7 @@ class BareQPRunner:
 
 def daqp_iterations(kinematics, pairs: PairSet, conf, q_nom: np.ndarray) -> dict[str, Any]:
     """DAQP iterations per plain-step QP along q_nom: warm-started (the backend's default), cold, and
-    with the flags the backend set before issue 20 (1 = "active at the upper bound" for every row
+    with the flags the backend used to set (1 = "active at the upper bound" for every row
     with λ ≠ 0, although a row A u ≥ b is DAQP's lower bound). Same problems for the three: the
     solutions agree to solver precision, so the trajectories are the same."""
     from services.safety.qp import daqp_backend

@@ -1,6 +1,6 @@
 """``safemimic certs``: the deployment's own certificate authority and one certificate per identity.
 
-Contracts (issue 21):
+Contracts:
 
 - ``safemimic certs init DIR`` writes ``DIR/ca.pem`` (a self-signed CA certificate) and
   ``DIR/ca.key`` (its private key, mode 0600); it refuses to replace an existing CA without

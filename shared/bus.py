@@ -1,4 +1,4 @@
-"""Typed pub/sub over Zenoh (DESIGN §1, §5, §11).
+"""Typed pub/sub over Zenoh (architecture §1, §5, §11).
 
 Key expressions: ``safemimic/{robot_id}/{topic}`` with the topics of :data:`TOPICS`, liveliness
 tokens ``safemimic/{robot_id}/alive/{service}``. A payload that fails to decode or validate is
@@ -446,6 +446,6 @@ def _topic_type(topic: str) -> type[Message]:
 
 def router_config(listen: list[str], lease_ms: int = 1000, multicast_scouting: bool = False,
                   tls: TlsConfig | None = None) -> BusConfig:
-    """Bus settings of a Zenoh router listening on ``listen`` (zenoh's own router, DESIGN §1)."""
+    """Bus settings of a Zenoh router listening on ``listen`` (zenoh's own router, architecture §1)."""
     return BusConfig(mode=BusMode.ROUTER, listen=listen, multicast_scouting=multicast_scouting, lease_ms=lease_ms,
                      tls=tls)

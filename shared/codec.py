@@ -1,4 +1,4 @@
-"""Message ↔ msgpack bytes (DESIGN §5, §11).
+"""Message ↔ msgpack bytes (architecture §5, §11).
 
 Wire format: a msgpack map ``{"schema": {"name", "version"}, <fields>...}``. numpy arrays travel
 as msgpack extension type ``ND_EXT`` (a dtype code, the shape and the raw little-endian C-order

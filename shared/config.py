@@ -50,7 +50,7 @@ class BusMode(str, Enum):
 
 
 class TlsConfig(_Section):
-    """Mutual TLS of a Zenoh session (DESIGN §11; the files come from ``safemimic certs``).
+    """Mutual TLS of a Zenoh session (architecture §11; the files come from ``safemimic certs``).
 
     Either ``dir`` (a folder holding ``ca.pem`` and ``IDENTITY.pem`` / ``IDENTITY.key``) or the three
     files by name. ``identity`` is the certificate's name, by default the session's own service name
@@ -77,7 +77,7 @@ class TlsConfig(_Section):
 
 
 class BusConfig(_Section):
-    """Zenoh session settings (DESIGN §1, §11).
+    """Zenoh session settings (architecture §1, §11).
 
     ``tls`` null is the open development bus (plain tcp, no authentication: anyone who reaches it
     can command the robot; a warning is logged). With ``tls`` set every session authenticates with
@@ -159,7 +159,7 @@ class GeometryName(str, Enum):
 
 
 class SafetyConfig(_Section):
-    """CBF-QP parameters (paper eqs. 3–9; DESIGN §4)."""
+    """CBF-QP parameters (paper eqs. 3–9; architecture §4)."""
 
     rate_hz: float = Field(default=500.0, gt=0, le=5000)
     status_rate_hz: float = Field(default=50.0, gt=0, le=1000)
@@ -273,7 +273,7 @@ class G1LockedWaistPolicy(str, Enum):
 
 
 class G1Config(_Section):
-    """The Unitree G1 hardware executor (``--backend g1``, DESIGN §11). Vectors are per imitation
+    """The Unitree G1 hardware executor (``--backend g1``, architecture §11). Vectors are per imitation
     joint, in the robot description's order."""
 
     mode: G1Mode = G1Mode.ARM_SDK
@@ -497,10 +497,10 @@ class CameraConfig(_Section):
 
 
 class PerceptionConfig(_Section):
-    """Perception service (DESIGN §1): skeleton source → point filter → θ + human capsules."""
+    """Perception service (architecture §1): skeleton source → point filter → θ + human capsules."""
 
     source: SkeletonSourceName = SkeletonSourceName.SCENARIO
-    recording: str | None = Field(default=None, description=".npz recording of the replay source (DESIGN §6)")
+    recording: str | None = Field(default=None, description=".npz recording of the replay source (architecture §6)")
     scenario: str = Field(default="neutral", pattern=r"^[a-z0-9\-]+$")
     scenario_fps: float = Field(default=30.0, gt=0, le=1000)
     scenario_shoulder_width: float = Field(default=0.36, ge=0.15, le=0.5, description="synthetic person (m)")

@@ -1,4 +1,4 @@
-"""Messages exchanged on the bus (DESIGN §5): pydantic v2 models, validated on both ends.
+"""Messages exchanged on the bus (architecture §5): pydantic v2 models, validated on both ends.
 
 Every message carries ``schema`` (name, version), ``stamp`` (float seconds), ``seq``
 (per-publisher counter) and ``source`` (publisher id). Arrays are numpy arrays with a

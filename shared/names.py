@@ -1,4 +1,4 @@
-"""Canonical names shared by every service (DESIGN §3).
+"""Canonical names shared by every service (architecture §3).
 
 Order matters: arrays in messages and recordings are indexed by these tuples.
 """

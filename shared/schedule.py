@@ -1,4 +1,4 @@
-"""Fixed-rate schedule of a control loop (DESIGN §8: sleep until the next tick, never spin).
+"""Fixed-rate schedule of a control loop (architecture §8: sleep until the next tick, never spin).
 
 Tick k is due at ``anchor + k · period`` (absolute: no drift). :meth:`FixedRateSchedule.wait`
 sleeps with ``threading.Event.wait`` until the next tick is due; whole periods that passed

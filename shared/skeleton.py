@@ -1,4 +1,4 @@
-"""Canonical skeleton and the ``.npz`` recording format (DESIGN §3, §6).
+"""Canonical skeleton and the ``.npz`` recording format (architecture §3, §6).
 
 A recording holds ``names`` (K canonical keypoint names, any order), ``t`` (T,) seconds,
 ``xyz`` (T, K, 3) metres, z up, ``fps`` (scalar), optional ``conf`` (T, K) in [0, 1] and

@@ -49,7 +49,7 @@ def test_defaults_from_shipped_yaml() -> None:
     assert cfg.safety.human_velocity_term is True and cfg.safety.human_timeout_s == 0.5
     assert cfg.safety.pairs == "default"
     assert cfg.bus.mode is BusMode.PEER and cfg.bus.connect == [] and cfg.bus.listen == []
-    assert cfg.bus.lease_ms == 500  # DESIGN §11: a vanished service noticed within 1 s (≈ 0.5 s, issue 8)
+    assert cfg.bus.lease_ms == 500  # architecture §11: a vanished service noticed within 1 s (≈ 0.5 s)
     assert cfg.bus.max_message_bytes == 262144  # far below Zenoh's 1 GiB default
     assert cfg.retargeting.scale == [1.0] * 8 and cfg.retargeting.offset == [0.0] * 8
     assert cfg.retargeting.theta_home == [0.0] * 8 and cfg.retargeting.mirror is False
@@ -398,7 +398,7 @@ def test_deep_merge_properties(base: dict, patch: dict) -> None:
 
 
 def test_feedforward_extrapolation_and_velocity_bounds_within_the_g1_limits() -> None:
-    """Issue 17: feed-forward on by default (off: the paper's eq. 7), extrapolation bounded, and the
+    """Feed-forward on by default (off: the paper's eq. 7), extrapolation bounded, and the
     velocity bounds within the G1's published joint velocity limits read from the robot description."""
     from shared.robot_spec import configured_robot_spec
 

@@ -1,5 +1,5 @@
-"""The offline evaluator (issue 6, items 2–4): the paper's two scenarios meet their numbers with our
-model and the real G1, the output is deterministic, and any DESIGN §6 recording evaluates (keys in
+"""The offline evaluator: the paper's two scenarios meet their numbers with our
+model and the real G1, the output is deterministic, and any architecture §6 recording evaluates (keys in
 any order, extra keys, real motion capture). Real perception, Pinocchio, DAQP and MuJoCo."""
 
 from __future__ import annotations

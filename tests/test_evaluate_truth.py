@@ -1,4 +1,4 @@
-"""The evaluator against the true person (issue 15): the true person is the unfiltered source, the
+"""The evaluator against the true person: the true person is the unfiltered source, the
 perceived one lags it by exactly the latency and is corrupted reproducibly, every robot surface
 counts, a pair touching at home counts once pressed deeper, a contact is blamed on whoever moved,
 the lag estimate recovers a known delay. Real perception, MuJoCo, Pinocchio and DAQP."""

@@ -1,6 +1,6 @@
 """The executor's MuJoCo simulation core (services.executor.sim), in-process, with our shipped
 G1-class model and with Menagerie's real G1 (meshes): welded base, joint servos, the person's
-capsules, and contact counting including the DESIGN §10 trap (a mocap capsule inside the welded
+capsules, and contact counting including the architecture §10 trap (a mocap capsule inside the welded
 pelvis, which MuJoCo's own contact list never reports)."""
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ def test_arm_commanded_into_the_torso_is_a_robot_robot_contact(sim: SimRobot) ->
 
 # ------------------------------------------------------------------------------- the person
 def test_human_capsule_inside_the_welded_pelvis_is_counted(sim: SimRobot) -> None:
-    """DESIGN §10: MuJoCo skips contacts between two DOF-less bodies (mocap capsule, welded pelvis)."""
+    """architecture §10: MuJoCo skips contacts between two DOF-less bodies (mocap capsule, welded pelvis)."""
     sim.set_human(*person_capsules(TORSO, [0.0, -0.02, 0.72], [0.0, 0.02, 0.72], 0.03))
     sim.step()
     assert sim.data.ncon == 0, "the person collides with nothing: it is measured, never simulated"

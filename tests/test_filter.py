@@ -130,7 +130,7 @@ def test_backends_agree_on_random_problems() -> None:
 
 @pytest.mark.parametrize("feedforward", [True, False])
 def test_ramp_is_tracked_without_lag_with_feedforward(feedforward: bool) -> None:
-    """Issue 17: u_ref = q̇_nom + K (q_nom − q_cbf) tracks a ramp with zero steady-state error; the
+    """u_ref = q̇_nom + K (q_nom − q_cbf) tracks a ramp with zero steady-state error; the
     paper's u_ref = K (q_nom − q_cbf) trails it by v/K (a lag of 1/K)."""
     p = pipeline_for()
     kin = p.kinematics

@@ -297,7 +297,7 @@ def test_check_frame_finds_what_must_not_be_sent() -> None:
 
 
 def test_arm_sdk_limits_the_imitated_waist_by_default() -> None:
-    """Issue 17: leaning over the balance controller tips the G1 (unitree_sdk2_python #146, #173):
+    """Leaning over the balance controller tips the G1 (unitree_sdk2_python #146, #173):
     in arm_sdk mode the waist targets stay within executor.g1.arm_sdk_waist_range by default."""
     lean = np.array([0.4, 0.4, 0.3, 0.25, 0.9, 0.3, -0.25, 0.9])  # waist rolled and pitched forward
     default = G1Config().arm_sdk_waist_range

@@ -1,4 +1,4 @@
-"""Collision geometries (issue 10, paper Table I): spheres and boxes against finite differences,
+"""Collision geometries (paper Table I): spheres and boxes against finite differences,
 their colliders contain the capsules, the velocity term, missing capsules, the configuration and
 API selection, and safety on the paper's two scenarios. Real Pinocchio, coal, numba and DAQP."""
 
@@ -280,7 +280,7 @@ def scenario_runs(kinematics) -> dict[str, dict[str, dict]]:
 
 
 def test_scenarios_keep_own_barriers(scenario_runs) -> None:
-    """Safety equivalence (issue 10): every geometry keeps its own h ≥ −1 mm on both scenarios,
+    """Safety equivalence: every geometry keeps its own h ≥ −1 mm on both scenarios,
     boxes included (their rounded edges leave the robot's forearm room between its own thigh and
     the person's hand beside it: sharp boxes pinch it there, the QP turns infeasible and the boxes
     overlap by 15 mm). Spheres at k = 0 start 5.9 mm inside their barrier at home and leave it

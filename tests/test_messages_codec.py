@@ -1,4 +1,4 @@
-"""Bus messages and their msgpack codec (DESIGN §5, §11).
+"""Bus messages and their msgpack codec (architecture §5, §11).
 
 * every message type round-trips exactly (arrays, dtypes, optional fields, every SafetyMode);
 * arrays travel as raw binary ND_EXT blobs, not as lists of msgpack floats;
@@ -51,7 +51,7 @@ from shared.messages import (
 F8 = np.dtype("<f8")
 B1 = np.dtype("|b1")
 
-#: Every array field, as DESIGN §3/§5 declare it (independent of the models' own annotations).
+#: Every array field, as architecture §3/§5 declare it (independent of the models' own annotations).
 ARRAY_FIELDS: dict[type[Message], dict[str, tuple[tuple[int, ...], np.dtype]]] = {
     HumanState: {
         "keypoints": ((15, 3), F8),

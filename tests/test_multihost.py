@@ -33,7 +33,7 @@ pytestmark = pytest.mark.integration
 
 HOSTS = ("router", "perception", "safety", "executor")
 SUBNET = "10.213.77"
-#: The safety service must report the human source lost this soon after the cut (issue 8).
+#: The safety service must report the human source lost this soon after the cut.
 LOST_WITHIN_S = 1.0
 API_TOKEN = "multihost-test-token-0123456789"
 

@@ -1,4 +1,4 @@
-"""q_nom between camera frames (issue 17 item 2): extrapolated by its rate, at most one frame period
+"""q_nom between camera frames: extrapolated by its rate, at most one frame period
 ahead, never outside the joint limits, stopped on a joint without a rate; the service and the
 evaluator use this one implementation."""
 

@@ -1,4 +1,4 @@
-"""Prioritised relaxation (issue 16 item 1): when a person moves into the robot faster than it can
+"""Prioritised relaxation: when a person moves into the robot faster than it can
 retreat, the self rows and joint barriers hold, every person row keeps at least A_i u ≥ min(b_i, 0)
 (the robot never closes in), the total violation is the least possible, and the problem is feasible
 by construction (u = 0, σ = max(b, 0)). Random states on the real robot model, real Pinocchio,

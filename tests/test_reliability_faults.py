@@ -1,10 +1,10 @@
-"""Issue 9 item 3, quick variant: kill -9 each service and the router of a running stack, and the
+"""Faults, quick variant: kill -9 each service and the router of a running stack, and the
 config store's writer mid-write (``bench.reliability.faults``; the full run is ``make reliability``).
 
 Held to the behaviour (each service comes back, nothing else dies or stalls, nothing unsafe is
 commanded, no acknowledged change is lost); the restart budgets (2 s, the router 5 s) are printed
 and reported by ``make reliability``: a restart is mostly the interpreter's start-up CPU time
-(``start_cpu_s``), which measures the machine (DESIGN §8).
+(``start_cpu_s``), which measures the machine (architecture §8).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Bad input (issue 9): the quick fuzz of ``make reliability`` and the bus's replay/out-of-order rule.
+"""Bad input: the quick fuzz of ``make reliability`` and the bus's replay/out-of-order rule.
 
 ``test_quick_fuzz_passes`` runs :func:`bench.reliability.fuzz.run` with ``quick=True`` (a few thousand
 hostile messages through the codec and every service's subscribers on real Zenoh, glitching

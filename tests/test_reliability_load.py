@@ -1,4 +1,4 @@
-"""Issue 9's load checks, quick variant (``make test``; ``make reliability`` runs the full one).
+"""The load checks, quick variant (``make test``; ``make reliability`` runs the full one).
 
 Real processes on loopback: the safety service at 500 Hz under a flood of HumanState messages
 (300 Hz plus bursts of 1,000), and the config API under 200 requests/s with a safety service
@@ -8,7 +8,7 @@ Both are held to their behaviour always, and to their timing budgets (≥ 99 % o
 200 requests/s at p99 < 50 ms) when the machine wakes a control thread on time
 (``machine_wake``, measured just before the flood): on a VM whose idle vCPUs halt, a FIFO thread
 doing nothing but sleep is woken up to 3 ms late, and a deadline budget then measures the host
-(DESIGN §8: budgets belong to reports, ``make reliability`` reports them whatever the machine).
+(architecture §8: budgets belong to reports, ``make reliability`` reports them whatever the machine).
 """
 
 from __future__ import annotations

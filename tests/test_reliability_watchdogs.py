@@ -1,4 +1,4 @@
-"""Issue 9 items 1–2, quick variant of ``make reliability``'s watchdogs group: a running stack
+"""The quick variant of ``make reliability``'s watchdogs group: a running stack
 (real Zenoh, MuJoCo, the CBF-QP) through config changes, a calibration and restarts of
 perception, the executor and the safety service; every command rate-limited, every watchdog
 shown in SafetyStatus and counted."""

@@ -112,7 +112,7 @@ def test_mirror_pose_is_an_involution() -> None:
 
 
 def test_rate_is_s_times_theta_rate_mirrored_and_zero_where_clipped_or_invalid(pipeline) -> None:
-    """Issue 17: q̇_nom = S ⊙ θ̇' (θ̇ mirrored like θ), 0 where q_nom is clipped or θ is invalid, and
+    """q̇_nom = S ⊙ θ̇' (θ̇ mirrored like θ), 0 where q_nom is clipped or θ is invalid, and
     it is the derivative of the retargeting wherever q_nom is not clipped."""
     r = pipeline.retargeter
     rng = np.random.default_rng(4)

@@ -179,7 +179,7 @@ def machine_wake() -> dict:
     """This machine's wake-up latency for a SCHED_FIFO thread (:func:`bench.common.wake_latency`):
     the deadline-miss budgets are held only where it keeps time. On a VM whose idle vCPUs halt, a
     thread doing nothing but sleep to 2 ms deadlines is woken up to 3 ms late (measured on the CI
-    VM, idle: p99 ≈ 1 ms), and the budget would measure the host (DESIGN §8)."""
+    VM, idle: p99 ≈ 1 ms), and the budget would measure the host (architecture §8)."""
     return wake_latency(2.0)
 
 
@@ -218,7 +218,7 @@ def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, m
     np.testing.assert_allclose(window[-1].q, window[0].q, atol=1e-9)  # q_nom = q_cbf: holds still
 
     # The service's own account: deadline misses < 1 % of its ticks (ticks = command seq + 1), held
-    # where the machine wakes a control thread on time (machine_wake; DESIGN §8).
+    # where the machine wakes a control thread on time (machine_wake; architecture §8).
     ticks = commands[-1][1].seq + 1
     if machine_wake["keeps_time"]:
         assert status.deadline_misses < 0.01 * ticks, (status, ticks, machine_wake)
@@ -466,7 +466,7 @@ def test_stale_human_keeps_capsules_and_stops_imitating(service: SafetyService) 
 
 
 def test_between_frames_q_nom_is_extrapolated_one_frame_and_its_rate_fed_forward(service: SafetyService) -> None:
-    """Issue 17: q_nom(t) = q + q̇ (t − t_received) for one frame period (the stamps' interval),
+    """q_nom(t) = q + q̇ (t − t_received) for one frame period (the stamps' interval),
     u_ref = q̇_nom + K (q_nom − q_cbf); after that frame, when stale, or with feedforward off: no q̇_nom."""
     theta = arm_forward() * 0.4
     first = human_state(theta, person(2.0)[1])

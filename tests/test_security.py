@@ -1,4 +1,4 @@
-"""Issue 21: nobody else drives the robot or switches its safety off.
+"""Nobody else drives the robot or switches its safety off.
 
 Real Zenoh on loopback through a real ``safemimic router`` process with mutual TLS and the access
 control generated from the service table: sessions without a certificate of the deployment's CA

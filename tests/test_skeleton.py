@@ -1,4 +1,4 @@
-"""The .npz recording format (DESIGN §6): read by name, any order, clear errors, round trip."""
+"""The .npz recording format (architecture §6): read by name, any order, clear errors, round trip."""
 
 from __future__ import annotations
 

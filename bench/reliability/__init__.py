@@ -21,7 +21,7 @@ class CheckResult:
     ``behaved`` is the behaviour the check is about (nothing crashed, nothing unsafe reached the
     robot, the service came back, the newest state was used, ...). ``budgets`` are the timing
     figures held to a bound (name → met), e.g. "resumed within 2 s" or "≥ 99 % of the deadlines
-    kept": performance, which DESIGN §8 measures in reports, not in timed unit tests, because on a
+    kept": performance, which architecture §8 measures in reports, not in timed unit tests, because on a
     shared 2-core VM they move with the host (see :mod:`bench.reliability.machine`). ``passed``,
     the verdict ``make reliability`` reports and exits on, needs both.
     """

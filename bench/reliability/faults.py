@@ -1,4 +1,4 @@
-"""Faults (issue 9 item 3): kill -9 each service, the Zenoh router, and the config API mid-write.
+"""Faults: kill -9 each service, the Zenoh router, and the config API mid-write.
 
 Stack checks run the simulated stack the way ``safemimic demo`` does (:mod:`safemimic.stack`'s
 command lines, :mod:`safemimic.launch`'s children: router, executor, safety, perception looping

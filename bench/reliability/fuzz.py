@@ -1,4 +1,4 @@
-"""Reliability group ``fuzz`` (issue 9, bad input): hostile messages never crash a service, are all
+"""Reliability group ``fuzz`` (bad input): hostile messages never crash a service, are all
 counted, and never reach the QP; glitching keypoints leave the robot safe.
 
 Everything runs the real code, in this process, with no mocks:

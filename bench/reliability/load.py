@@ -1,4 +1,4 @@
-"""Load checks (issue 9, item 5): a flood of human states at the safety service, 200 requests/s at the config API.
+"""Load checks: a flood of human states at the safety service, 200 requests/s at the config API.
 
 ``human_state_flood``
     ``safemimic safety`` at 500 Hz in its own process (Zenoh peer on loopback); another process

@@ -1,4 +1,4 @@
-"""Watchdogs and rate limits (issue 9 items 1–2) on a running stack, in one process.
+"""Watchdogs and rate limits on a running stack, in one process.
 
 The executor (MuJoCo), the safety service (500 Hz) and perception (a scripted person beside the
 robot, looping) run in threads, each with its own Zenoh session, as clients of a router session

@@ -1,4 +1,4 @@
-"""``safemimic evaluate``: the offline evaluator (DESIGN §7; paper §IV-A, Figs. 2–3).
+"""``safemimic evaluate``: the offline evaluator (architecture §7; paper §IV-A, Figs. 2–3).
 
 One process runs the services' own code in lockstep, without Zenoh: the perception pipeline
 (filter → angles → capsules) on every skeleton frame, the safety pipeline (retarget → CBF-QP) at
@@ -18,7 +18,7 @@ import os
 import sys
 
 # Offscreen rendering (snapshot.png) without a display: MuJoCo picks its OpenGL backend when it is
-# first imported, so choose EGL (software rendering works, DESIGN §10) before any submodule
+# first imported, so choose EGL (software rendering works, architecture §10) before any submodule
 # imports it. An explicit MUJOCO_GL wins.
 if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
     os.environ.setdefault("MUJOCO_GL", "egl")

@@ -76,7 +76,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         "one such folder per clip and placement plus summary.json, summary.md and summary.png."
     )
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--skeleton", metavar="FILE.npz", help="a skeleton recording (DESIGN §6)")
+    source.add_argument("--skeleton", metavar="FILE.npz", help="a skeleton recording (architecture §6)")
     source.add_argument("--scenario", choices=list(SCENARIOS), metavar="NAME",
                         help=f"a scripted scenario: {', '.join(SCENARIOS)}")
     source.add_argument("--suite", metavar="DIR", help="evaluate every .npz recording in DIR at each of --placements")

@@ -1,4 +1,4 @@
-"""The two people of an evaluation: the true person and the perceived one (DESIGN §7).
+"""The two people of an evaluation: the true person and the perceived one (architecture §7).
 
 **True person** (:func:`true_person`): the source's skeleton as recorded, with no point filter,
 interpolated linearly to the control rate (control time t_k = k Δt from the first frame; a

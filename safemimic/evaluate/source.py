@@ -1,7 +1,7 @@
 """The evaluator's input: the configured skeleton source's frames, read once.
 
 :func:`open_input` reads ``conf.perception``'s source exactly as the perception service does
-(``open_source``: a DESIGN §6 recording, normalised and placed, or a scripted scenario), without
+(``open_source``: a architecture §6 recording, normalised and placed, or a scripted scenario), without
 pacing. Frames are in the robot frame, times from the source (s).
 """
 

@@ -1,4 +1,4 @@
-"""The robot measured against the true person, at its simulated joints (DESIGN §7).
+"""The robot measured against the true person, at its simulated joints (architecture §7).
 
 :class:`TruthProbe` evaluates, at every control step, the robot's CBF capsules at the simulated
 joint angles q_sim against the *true* person's capsules, over *every* pair (the robot

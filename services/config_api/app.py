@@ -36,7 +36,7 @@ def create_app(context: ApiContext) -> FastAPI:
         title="safemimic config API",
         version=VERSION,
         description=(
-            "The single writer of the stack's parameters (DESIGN §1). Writes need "
+            "The single writer of the stack's parameters (architecture §1). Writes need "
             "`Authorization: Bearer <token>`; every accepted change is persisted with a new version, "
             "published on Zenoh as ConfigUpdate and acknowledged by the safety service's SafetyStatus."
         ),

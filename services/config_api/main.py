@@ -1,4 +1,4 @@
-"""``safemimic config-api``: serve the config API and web console with uvicorn (DESIGN §1).
+"""``safemimic config-api``: serve the config API and web console with uvicorn (architecture §1).
 
 On start: load the configuration (file, environment, flags), then the store (the persisted
 configuration wins over the file, except this process's robot id, bus and API settings), resolve

@@ -1,4 +1,4 @@
-"""The executor: the robot end of the bus (DESIGN §1).
+"""The executor: the robot end of the bus (architecture §1).
 
 Library (no Zenoh): :mod:`services.executor.sim` (the MuJoCo simulation with the person's
 capsules and contact counting, shared with the offline evaluator), :mod:`services.executor.contacts`

@@ -1,4 +1,4 @@
-"""Unitree G1 hardware facts the G1 executor relies on (DESIGN §11): motor slots, joint ranges and
+"""Unitree G1 hardware facts the G1 executor relies on (architecture §11): motor slots, joint ranges and
 torque limits, topics, model variants (``mode_machine``) and default servo gains.
 
 Sources (read, not copied):

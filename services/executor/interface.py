@@ -1,4 +1,4 @@
-"""What the executor service drives: a robot that servos the 8 imitation joints (DESIGN §1).
+"""What the executor service drives: a robot that servos the 8 imitation joints (architecture §1).
 
 :class:`Executor` is the interface; :class:`~services.executor.mujoco_executor.MujocoExecutor`
 (the MuJoCo simulation) implements it here, the G1 hardware adapter is the second

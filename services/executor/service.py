@@ -1,4 +1,4 @@
-"""``safemimic executor``: the robot end of the bus (DESIGN §1, §5).
+"""``safemimic executor``: the robot end of the bus (architecture §1, §5).
 
 Subscribes to ``robot/command`` (:class:`~shared.messages.JointCommand`) and ``human/state``
 (:class:`~shared.messages.HumanState`), drives an :class:`~services.executor.interface.Executor`
@@ -17,11 +17,11 @@ Every tick:
 2. a new human state (robot frame only; others are dropped and counted) moves the person's
    capsules in the simulation; the last one stays while none arrives;
 3. one control period of physics, then the contacts of that step are tallied (robot–robot and
-   robot–human, DESIGN §10) into the counters logged every ``executor.stats_interval_s`` and
+   robot–human, architecture §10) into the counters logged every ``executor.stats_interval_s`` and
    returned by :func:`main`.
 
 Ticks are scheduled at absolute times and the thread sleeps on a ``threading.Event`` between them,
-never spinning (DESIGN §8). A tick that starts a whole period late counts the skipped slots as
+never spinning (architecture §8). A tick that starts a whole period late counts the skipped slots as
 deadline misses and keeps the schedule's phase (simulated time then lags wall time by as much).
 Undecodable or invalid payloads are dropped and counted by the bus, never reach the robot.
 """

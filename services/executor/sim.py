@@ -1,4 +1,4 @@
-"""MuJoCo simulation of the robot with the person in its world (DESIGN §1, §7, §10).
+"""MuJoCo simulation of the robot with the person in its world (architecture §1, §7, §10).
 
 :class:`SimRobot` is the simulation core shared by the executor service and the offline
 evaluator: no Zenoh, no clock, deterministic for the same calls.
@@ -8,7 +8,7 @@ as Menagerie's G1 with meshes), edited with ``mujoco.MjSpec`` before compiling:
 
 - **welded base**: the base body's joints (the free joint) are removed and the body is placed at
   ``(0, 0, base_height)`` with identity orientation, so the world frame is the robot frame of
-  DESIGN §3 (x forward, y left, z up, floor at z = 0). The robot's own balance controller holds
+  architecture §3 (x forward, y left, z up, floor at z = 0). The robot's own balance controller holds
   the lower body in the paper; here the pelvis is simply fixed;
 - **joint servos**: the model's actuators and sensors are replaced by one position servo per joint
   (torque = kp (q_ref − q) − kd q̇, limited by the joint's ``actuatorfrcrange``). The 8 imitation
@@ -35,7 +35,7 @@ as Menagerie's G1 with meshes), edited with ``mujoco.MjSpec`` before compiling:
 The robot's *surface* (what a person could touch) is every collision geom of the robot plus every
 visual geom that no collision geom of its body duplicates (same shape, size and pose): the real
 G1 model's rubber hands are visual-only meshes, so without them no hand contact would ever be
-counted. Distances to surfaces need no contact forces, and they also cover the DESIGN §10 trap
+counted. Distances to surfaces need no contact forces, and they also cover the architecture §10 trap
 (MuJoCo reports no contact between a mocap capsule and the welded, DOF-less pelvis).
 Units SI: metres, radians, seconds, newton-metres.
 """

@@ -1,4 +1,4 @@
-"""Perception service (DESIGN §1): skeleton source → point filter → pose angles θ + human capsules.
+"""Perception service (architecture §1): skeleton source → point filter → pose angles θ + human capsules.
 
 Modules: ``stream`` (source interface, pacing), ``sources`` (replay / scenario / camera by config),
 ``placement`` (person ↔ robot frame), ``synthetic`` + ``scenarios`` (scripted people with known

@@ -1,4 +1,4 @@
-"""``safemimic record-scenario NAME OUT.npz``: write a scripted scenario as a recording (DESIGN §6).
+"""``safemimic record-scenario NAME OUT.npz``: write a scripted scenario as a recording (architecture §6).
 
 The file is in the robot frame with the chosen placement applied (``source`` says which);
 ``safemimic perception --recording OUT.npz --placement recorded`` streams it back unchanged, and

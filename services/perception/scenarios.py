@@ -173,7 +173,7 @@ def scenario_frames(
 def scenario_recording(
     scenario: Scenario, seconds: float, fps: float, placement: Placement, body: Body = Body()
 ) -> Recording:
-    """The scenario as a recording (DESIGN §6) of ``seconds`` at ``fps``, in the robot frame."""
+    """The scenario as a recording (architecture §6) of ``seconds`` at ``fps``, in the robot frame."""
     if not (seconds > 0 and fps > 0):
         raise ValueError("seconds and fps must be > 0")
     times = np.arange(max(1, round(seconds * fps))) / fps

@@ -12,7 +12,7 @@ Configuration updates (``config`` topic, from the config API) are validated when
 applied before the next frame: point filter, angle estimator and human capsule parameters change
 live; the bus, robot id and source settings need a restart (logged, otherwise ignored).
 
-Light by design (DESIGN §1): this module's imports reach numpy, pydantic, PyYAML, msgpack and
+Light by design (architecture §1): this module's imports reach numpy, pydantic, PyYAML, msgpack and
 zenoh only — never MuJoCo, Pinocchio, a QP solver or FastAPI (a test proves it).
 """
 

@@ -1,4 +1,4 @@
-"""``safemimic router``: a Zenoh session in router mode that clients connect through (DESIGN §1)."""
+"""``safemimic router``: a Zenoh session in router mode that clients connect through (architecture §1)."""
 
 from __future__ import annotations
 

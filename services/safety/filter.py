@@ -1,4 +1,4 @@
-"""The CBF-QP safety filter: one control step (paper eqs. 7–9; DESIGN §4).
+"""The CBF-QP safety filter: one control step (paper eqs. 7–9; architecture §4).
 
     u_ref = q̇_nom + K (q_nom − q_cbf)      (q̇_nom: the target's own velocity; none: the paper's eq. 7)
     u* = argmin ½ ‖u − u_ref‖²_W  s.t.  A(q_cbf) u ≥ b,  u_lo ≤ u ≤ u_hi

@@ -1,4 +1,4 @@
-"""The nominal target between camera frames (issue 17): q_nom and its rate q̇_nom at the control rate.
+"""The nominal target between camera frames: q_nom and its rate q̇_nom at the control rate.
 
 A human state arrives once per camera frame (≈ 30 Hz); the safety filter steps at 500 Hz. Held as a
 staircase, q_nom jumps once a frame and the robot trails it by a frame more than it must. Instead

@@ -1,4 +1,4 @@
-"""``safemimic safety``: the CBF safety service at a fixed control rate (DESIGN §1, §4, §5, §8).
+"""``safemimic safety``: the CBF safety service at a fixed control rate (architecture §1, §4, §5, §8).
 
 Every tick (default 500 Hz, ``safety.rate_hz``):
 
@@ -40,7 +40,7 @@ Watchdogs (each shown in SafetyStatus and counted in ``watchdog_trips`` when it 
 
 Scheduling is absolute (tick k is due at start + k·Δt) and the thread sleeps on a
 ``threading.Event`` between ticks — never a busy loop, which would hold the GIL and delay the
-Zenoh callbacks (DESIGN §8). A tick that completes after the next tick's due time is a deadline
+Zenoh callbacks (architecture §8). A tick that completes after the next tick's due time is a deadline
 miss; tick slots skipped entirely after a long stall are misses too and the schedule moves on
 (keeping its phase) instead of bursting to catch up.
 """

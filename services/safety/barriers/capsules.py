@@ -1,4 +1,4 @@
-"""Capsule CBF rows (paper eqs. 4–7; DESIGN §4).
+"""Capsule CBF rows (paper eqs. 4–7; architecture §4).
 
 For a pair (A, B) with closest points p_A = a_A + s*(b_A − a_A), p_B = a_B + t*(b_B − a_B),
 d = ‖p_A − p_B‖ and unit normal n = (p_A − p_B)/d:

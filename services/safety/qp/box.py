@@ -1,5 +1,5 @@
 """The QP's box and the integration step, compiled (numba): two calls instead of ~16 numpy calls
-on 8-element arrays, the Python overhead that dominated the safety step (issue 20's profile).
+on 8-element arrays, the Python overhead that dominated the safety step (the profile in docs/benchmarks.md).
 
 Element by element the same IEEE operations as the numpy expressions they replace, so results
 are bit-identical:
