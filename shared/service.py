@@ -2,16 +2,48 @@
 
 A service is a context manager; :meth:`BusService.close` closes the bus only if the service
 opened it (tests and in-process drivers pass their own). :class:`ScheduledService` adds the
-deadline counters of a fixed-rate control loop (:class:`~shared.schedule.FixedRateSchedule`).
+deadline counters of a fixed-rate control loop (:class:`~shared.schedule.FixedRateSchedule`);
+:class:`StepErrors` is how every loop survives a step that raises.
 """
 
 from __future__ import annotations
 
-from typing import Self
+import logging
+from collections.abc import Callable
+from typing import Self, TypeVar
 
 from shared.bus import Bus
 from shared.config import StackConfig
 from shared.schedule import FixedRateSchedule
+
+T = TypeVar("T")
+
+
+class StepErrors:
+    """Unexpected exceptions of a loop's steps (a control tick, a camera frame): each is counted
+    (``total``) and logged (the first of every streak and the first ten overall, never one per
+    step of a long streak), and the loop goes on — until ``limit`` steps in a row failed: that is
+    a bug, not bad input, and the exception is raised."""
+
+    def __init__(self, log: logging.Logger, what: str, limit: int) -> None:
+        self.total = 0
+        self._streak = 0
+        self._log, self._what, self._limit = log, what, limit
+
+    def run(self, step: Callable[[], T]) -> T | None:
+        """``step()``'s result, or None after a counted, logged exception (raised at the limit)."""
+        try:
+            result = step()
+        except Exception:
+            self.total += 1
+            self._streak += 1
+            if self._streak == 1 or self.total <= 10:
+                self._log.exception("%s failed (%d so far)", self._what, self.total)
+            if self._streak >= self._limit:
+                raise
+            return None
+        self._streak = 0
+        return result
 
 
 class BusService:

@@ -50,7 +50,7 @@ from shared.config import ConfigError, ExecutorBackend, StackConfig
 from shared.messages import HumanState, JointCommand, JointState
 from shared.robot_spec import RobotSpecError, configured_robot_spec
 from shared.schedule import FixedRateSchedule
-from shared.service import ScheduledService
+from shared.service import ScheduledService, StepErrors
 from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.executor")
@@ -99,7 +99,7 @@ class ExecutorService(ScheduledService):
         n = len(self.executor.joint_names)
         self.ticks = 0
         self.schedule = FixedRateSchedule(1.0 / conf.executor.rate_hz)
-        self.tick_errors = 0
+        self.tick_errors = StepErrors(log, "executor tick", _MAX_CONSECUTIVE_ERRORS)
         self.commands_applied = 0
         self.clipped_commands = 0
         self.stale_ticks = 0
@@ -202,18 +202,8 @@ class ExecutorService(ScheduledService):
         schedule.start(stop, duration)
         begin = schedule.begin
         next_stats = begin + c.stats_interval_s
-        consecutive_errors = 0
         while (now := schedule.wait()) is not None:
-            try:
-                self.tick(now)
-                consecutive_errors = 0
-            except Exception:
-                self.tick_errors += 1
-                consecutive_errors += 1
-                if consecutive_errors == 1 or self.tick_errors <= 10:
-                    log.exception("executor tick failed (%d so far)", self.tick_errors)
-                if consecutive_errors >= _MAX_CONSECUTIVE_ERRORS:
-                    raise
+            self.tick_errors.run(lambda: self.tick(now))
             if now >= next_stats:
                 log.info("%s", self.summary_line(now - begin))
                 next_stats += c.stats_interval_s
@@ -241,7 +231,7 @@ class ExecutorService(ScheduledService):
             "max_late_ms": self.max_late_s * 1e3,
             "tick_p50_us": float(np.percentile(tick_us, 50)),
             "tick_p99_us": float(np.percentile(tick_us, 99)),
-            "tick_errors": self.tick_errors,
+            "tick_errors": self.tick_errors.total,
             "commands_received": self.command.count,
             "commands_applied": self.commands_applied,
             "clipped_commands": self.clipped_commands,

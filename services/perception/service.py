@@ -30,12 +30,12 @@ from typing import Any
 
 from services.perception.pipeline import PerceptionPipeline
 from services.perception.sources import SourceUnavailable, open_source
-from services.perception.stream import SkeletonSource
+from services.perception.stream import SkeletonFrame, SkeletonSource
 from shared.bus import Bus, topic_key
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, PerceptionConfig, SkeletonSourceName, StackConfig, validate_config
 from shared.messages import ConfigUpdate
-from shared.service import BusService
+from shared.service import BusService, StepErrors
 from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.perception")
@@ -61,7 +61,7 @@ class PerceptionService(BusService):
         self.pipeline = PerceptionPipeline(conf.perception, conf.human)
         self.open_bus(conf, SERVICE_NAME, bus)
         self.published = 0
-        self.errors = 0
+        self.frame_errors = StepErrors(log, "frame", _MAX_CONSECUTIVE_ERRORS)
         self.config_version = 0
         self.rejected_configs = 0
         self._pending: tuple[int, StackConfig] | None = None
@@ -113,6 +113,18 @@ class PerceptionService(BusService):
         finally:
             probe.undeclare()
 
+    @property
+    def errors(self) -> int:
+        """Frames that failed (an unexpected exception; counted, logged, skipped)."""
+        return self.frame_errors.total
+
+    def _publish(self, frame: SkeletonFrame) -> None:
+        """One frame: pending configuration → pipeline → HumanState published."""
+        self._apply_pending_config()
+        result = self.pipeline.step(frame)
+        self._publisher.put(result.to_message(stamp=time.monotonic(), capture_stamp=frame.captured))
+        self.published += 1
+
     def counters(self) -> dict[str, Any]:
         counters = {**asdict(self.pipeline.counters), "published": self.published, "errors": self.errors,
                     "config_version": self.config_version, "rejected_configs": self.rejected_configs,
@@ -131,21 +143,8 @@ class PerceptionService(BusService):
         began = time.monotonic()
         end = began + duration if duration is not None else float("inf")
         next_stats = began + perception.stats_interval_s
-        consecutive_errors = 0
         for frame in self.source.frames(stop):
-            try:
-                self._apply_pending_config()
-                result = self.pipeline.step(frame)
-                self._publisher.put(result.to_message(stamp=time.monotonic(), capture_stamp=frame.captured))
-                self.published += 1
-                consecutive_errors = 0
-            except Exception:
-                self.errors += 1
-                consecutive_errors += 1
-                if self.errors <= 10:
-                    log.exception("frame at t=%.3f failed (%d so far)", frame.t, self.errors)
-                if consecutive_errors >= _MAX_CONSECUTIVE_ERRORS:
-                    raise
+            self.frame_errors.run(lambda: self._publish(frame))
             now = time.monotonic()
             if now >= next_stats:
                 _emit("stats", **self.counters())

@@ -68,7 +68,7 @@ from services.safety.nominal import NominalTrack
 from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
-from shared.service import ScheduledService
+from shared.service import ScheduledService, StepErrors
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, StackConfig, validate_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
@@ -158,7 +158,7 @@ class SafetyService(ScheduledService):
         self._tripped: set[str] = set()  # watchdogs tripped now
         self.nonfinite_holds = 0
         self.config_version = 0
-        self.tick_errors = 0
+        self.tick_errors = StepErrors(log, "safety tick", _MAX_CONSECUTIVE_ERRORS)
         self.modes: Counter[str] = Counter()
         self._step_times = np.zeros(_STEP_TIME_WINDOW)
         self._q_nom = self.pipeline.filter.q_cbf.copy()  # retargeted from the newest human state
@@ -469,19 +469,9 @@ class SafetyService(ScheduledService):
         gc.freeze()  # long-lived objects leave the collector: shorter gen-2 pauses in the loop
         schedule = self.schedule
         schedule.start(stop, duration)
-        consecutive_errors = 0
         misses_logged, last_miss_log = 0, -math.inf
         while (now := schedule.wait()) is not None:
-            try:
-                self.tick(now)
-                consecutive_errors = 0
-            except Exception:
-                self.tick_errors += 1
-                consecutive_errors += 1
-                if consecutive_errors == 1 or self.tick_errors <= 10:
-                    log.exception("safety tick failed (%d so far)", self.tick_errors)
-                if consecutive_errors >= _MAX_CONSECUTIVE_ERRORS:
-                    raise
+            self.tick_errors.run(lambda: self.tick(now))
             done = time.monotonic()
             schedule.finished(done)
             if schedule.missed != misses_logged and done - last_miss_log >= _MISS_LOG_INTERVAL_S:
@@ -511,7 +501,7 @@ class SafetyService(ScheduledService):
             "superseded": {topic: int(n) for topic, n in self.bus.superseded.items() if n},
             "watchdog_trips": dict(self.watchdog_trips),
             "nonfinite_holds": self.nonfinite_holds,
-            "tick_errors": self.tick_errors,
+            "tick_errors": self.tick_errors.total,
             "config_version": self.config_version,
             "modes": dict(self.modes),
             "dropped": self.dropped(),
