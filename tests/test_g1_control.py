@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.executor.g1_control import TORQUE_FAULT_SAMPLES, G1Controller, G1StartError, G1State, Phase, check_frame
-from services.executor.g1_frames import lowcmd_crc
-from services.executor.g1_layout import ARM_SDK_HOLD_GAINS, G1_JOINTS, LOWCMD_HOLD_GAINS, WEIGHT_SLOT
+from services.executor.g1.control import TORQUE_FAULT_SAMPLES, G1Controller, G1StartError, Phase, check_frame
+from services.executor.g1.state import G1State
+from services.executor.g1.frames import lowcmd_crc
+from services.executor.g1.layout import ARM_SDK_HOLD_GAINS, G1_JOINTS, LOWCMD_HOLD_GAINS, WEIGHT_SLOT
 from shared.config import G1Config
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
 

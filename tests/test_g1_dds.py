@@ -13,7 +13,7 @@ pytest.importorskip("cyclonedds", reason="CycloneDDS's Python package is not ins
 from cyclonedds.idl import IdlStruct  # noqa: E402
 from cyclonedds.idl._support import Endianness  # noqa: E402
 
-from services.executor.g1_dds import (  # noqa: E402
+from services.executor.g1.dds import (  # noqa: E402
     IMUState_,
     LowCmd_,
     LowState_,
@@ -23,7 +23,7 @@ from services.executor.g1_dds import (  # noqa: E402
     lowstate_to_state,
     participant_config,
 )
-from services.executor.g1_frames import lowcmd_crc, seal  # noqa: E402
+from services.executor.g1.frames import lowcmd_crc, seal  # noqa: E402
 from tests.test_g1_frames import golden_frame, random_frame  # noqa: E402
 
 #: SHA-256 of unitree_sdk2_python 1.0.1's ``LowCmd_.serialize()`` of :func:`golden_frame` (with its CRC).

@@ -1,6 +1,6 @@
 """``safemimic executor --backend g1`` against a stand-in robot, both real processes speaking real
 CycloneDDS on the loopback interface (each test in its own DDS domain). The stand-in
-(``services.executor.g1_fake_robot``) publishes ``rt/lowstate`` and records every ``rt/arm_sdk`` /
+(``services.executor.g1.fake_robot``) publishes ``rt/lowstate`` and records every ``rt/arm_sdk`` /
 ``rt/lowcmd`` frame it receives; this test process plays the safety service over real Zenoh.
 Checked from the robot's side: fields, slots, CRC, the blend ramps, the watchdogs, the rate."""
 
@@ -17,8 +17,8 @@ import pytest
 
 pytest.importorskip("cyclonedds", reason="CycloneDDS's Python package is not installed: pip install 'safemimic[g1]'")
 
-from services.executor.g1_fake_robot import BALANCE_POSE  # noqa: E402
-from services.executor.g1_layout import WEIGHT_SLOT  # noqa: E402
+from services.executor.g1.fake_robot import BALANCE_POSE  # noqa: E402
+from services.executor.g1.layout import WEIGHT_SLOT  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.config import BusConfig  # noqa: E402
 from shared.messages import JointCommand, JointState  # noqa: E402
@@ -74,7 +74,7 @@ def domain() -> int:
 
 def start_robot(spawn, tmp_path: Path, dds_domain: int, mode_machine: int = 5):
     record = tmp_path / "robot.npz"
-    robot = spawn("-m", "services.executor.g1_fake_robot", "--interface", "lo", "--domain", str(dds_domain),
+    robot = spawn("-m", "services.executor.g1.fake_robot", "--interface", "lo", "--domain", str(dds_domain),
                   "--mode-machine", str(mode_machine), "--record", str(record))
     robot.wait_json("ready", timeout=20)
     return robot, record

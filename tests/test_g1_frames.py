@@ -10,7 +10,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from services.executor.g1_frames import (
+from services.executor.g1.frames import (
     LOWCMD_DTYPE,
     LOWSTATE_DTYPE,
     crc32_words,
@@ -18,7 +18,7 @@ from services.executor.g1_frames import (
     new_lowcmd,
     seal,
 )
-from services.executor.g1_layout import (
+from services.executor.g1.layout import (
     ARM_SDK_SLOTS,
     G1_JOINTS,
     LOWCMD_HOLD_GAINS,

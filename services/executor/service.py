@@ -1,9 +1,9 @@
 """``safemimic executor``: the robot end of the bus (architecture §1, §5).
 
 Subscribes to ``robot/command`` (:class:`~shared.messages.JointCommand`) and ``human/state``
-(:class:`~shared.messages.HumanState`), drives an :class:`~services.executor.interface.Executor`
+(:class:`~shared.messages.HumanState`), drives an :class:`~services.executor.base.Executor`
 (``executor.backend``: the MuJoCo simulation, or the real Unitree G1 through
-:mod:`services.executor.g1_executor`) at ``executor.rate_hz`` in real time and publishes
+:mod:`services.executor.g1.executor`) at ``executor.rate_hz`` in real time and publishes
 ``robot/joint_state`` (:class:`~shared.messages.JointState`) at ``executor.state_rate_hz``.
 Holds the liveliness token ``alive/executor``.
 
@@ -43,7 +43,7 @@ import numpy as np
 
 from services.executor.contacts import ContactTally
 from services.executor.errors import ExecutorStartError
-from services.executor.interface import Executor
+from services.executor.base import Executor
 from shared.bus import Bus, Latest, Received
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, ExecutorBackend, StackConfig
@@ -76,11 +76,11 @@ def build_executor(conf: StackConfig) -> Executor:
     c = conf.executor
     spec = configured_robot_spec(conf)
     if c.backend is ExecutorBackend.G1:
-        from services.executor.g1_executor import G1Executor
+        from services.executor.g1.executor import G1Executor
 
         return G1Executor(spec, c.g1, 1.0 / c.rate_hz)
-    from services.executor.mujoco_executor import MujocoExecutor
-    from services.executor.sim import PDGains
+    from services.executor.mujoco.executor import MujocoExecutor
+    from services.executor.mujoco.sim import PDGains
 
     return MujocoExecutor(spec, PDGains.from_config(c), 1.0 / c.rate_hz, c.viewer)
 

@@ -1,7 +1,7 @@
-"""The real Unitree G1 as an :class:`~services.executor.interface.Executor` (``safemimic executor
+"""The real Unitree G1 as an :class:`~services.executor.base.Executor` (``safemimic executor
 --backend g1``), over CycloneDDS with unitree_sdk2's topics and messages.
 
-Every tick: the newest ``rt/lowstate`` is taken, :class:`~services.executor.g1_control.G1Controller`
+Every tick: the newest ``rt/lowstate`` is taken, :class:`~services.executor.g1.control.G1Controller`
 builds and checks one LowCmd_ frame (ramps, limits, watchdogs, CRC), and the frame goes out on
 ``rt/arm_sdk`` (default) or ``rt/lowcmd``. :meth:`G1Executor.start` waits for the robot's state and
 refuses to start on an unfit unit; :meth:`G1Executor.stop` ramps out before it returns. In dry-run
@@ -19,9 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from services.executor.g1_control import G1Controller, G1StartError, G1State
-from services.executor.g1_layout import TOPIC_ARM_SDK, TOPIC_LOWCMD, TOPIC_LOWSTATE
-from services.executor.interface import Executor, JointReading
+from services.executor.g1.control import G1Controller, G1StartError
+from services.executor.g1.state import G1State
+from services.executor.g1.layout import TOPIC_ARM_SDK, TOPIC_LOWCMD, TOPIC_LOWSTATE
+from services.executor.base import Executor, JointReading
 from shared.config import G1Config, G1Mode
 from shared.robot_spec import RobotSpec
 
@@ -52,7 +53,7 @@ class G1Executor(Executor):
         self.frames_sent = 0
         self.frames_withheld = 0
         self.frames_printed = 0
-        self._dds: ModuleType | None = None  # services.executor.g1_dds, imported by start()
+        self._dds: ModuleType | None = None  # services.executor.g1.dds, imported by start()
         self._link: Any = None
         self._reader: Any = None
         self._writer: Any = None
@@ -73,7 +74,7 @@ class G1Executor(Executor):
         if self._link is not None:
             return
         try:
-            from services.executor import g1_dds
+            from services.executor.g1 import dds as g1_dds
         except ImportError as exc:
             raise G1StartError(str(exc)) from None
         self._dds = g1_dds

@@ -2,7 +2,7 @@
 
 :class:`G1Controller` turns imitation targets (the safety service's ``q_cbf``, ``u*``) and the
 robot's measured state into one sealed ``unitree_hg`` LowCmd_ frame per tick
-(:data:`~services.executor.g1_frames.LOWCMD_DTYPE`). The transport (:mod:`services.executor.g1_executor`)
+(:data:`~services.executor.g1.frames.LOWCMD_DTYPE`). The transport (:mod:`services.executor.g1.executor`)
 only moves frames and states.
 
 Phases::
@@ -44,15 +44,14 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
 import numpy as np
 
 from services.executor.errors import ExecutorStartError
-from services.executor.g1_frames import lowcmd_crc, new_lowcmd, seal
-from services.executor.g1_layout import (
+from services.executor.g1.frames import lowcmd_crc, new_lowcmd, seal
+from services.executor.g1.layout import (
     ARM_SDK_HOLD_GAINS,
     ARM_SDK_SLOTS,
     G1_JOINTS,
@@ -62,10 +61,11 @@ from services.executor.g1_layout import (
     joint_slot,
     variant_of,
 )
+from services.executor.g1.state import G1State
 from shared.config import G1ArmSdkJoints, G1Config, G1LockedWaistPolicy, G1Mode, G1Waist
 from shared.robot_spec import RobotSpec
 
-__all__ = ["TORQUE_FAULT_SAMPLES", "G1Controller", "G1StartError", "G1State", "Phase", "check_frame"]
+__all__ = ["TORQUE_FAULT_SAMPLES", "G1Controller", "G1StartError", "Phase", "check_frame"]
 
 log = logging.getLogger("safemimic.executor.g1")
 
@@ -92,18 +92,6 @@ class Phase(str, Enum):
     ACTIVE = "active"
     RAMP_OUT = "ramp_out"
     FAULT = "fault"
-
-
-@dataclass(frozen=True)
-class G1State:
-    """One ``rt/lowstate`` sample: the 29 motors' ``q`` (rad), ``dq`` (rad/s), ``tau_est`` (N·m) in
-    slot order, the unit's ``mode_machine``, and the local monotonic time it was received (s)."""
-
-    q: np.ndarray
-    dq: np.ndarray
-    tau_est: np.ndarray
-    mode_machine: int
-    received: float
 
 
 def _absent_slots(mode_machine: int, waist: G1Waist) -> tuple[frozenset[int], str]:

@@ -1,4 +1,4 @@
-"""The MuJoCo simulation as an :class:`~services.executor.interface.Executor`, with an optional
+"""The MuJoCo simulation as an :class:`~services.executor.base.Executor`, with an optional
 passive viewer window."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import mujoco
 import numpy as np
 
 from services.executor.contacts import ContactReport
-from services.executor.interface import Executor, JointReading
-from services.executor.sim import HUMAN_GEOM_GROUP, PDGains, SimRobot
+from services.executor.base import Executor, JointReading
+from services.executor.mujoco.sim import HUMAN_GEOM_GROUP, PDGains, SimRobot
 from shared.robot_spec import RobotSpec
 
 __all__ = ["MAX_PHYSICS_STEP_S", "MujocoExecutor", "open_viewer"]
@@ -67,12 +67,12 @@ def open_viewer(model: mujoco.MjModel, data: mujoco.MjData):  # -> mujoco.viewer
 
 
 class MujocoExecutor(Executor):
-    """:class:`~services.executor.sim.SimRobot` advanced by one control ``period`` (s) per tick.
+    """:class:`~services.executor.mujoco.sim.SimRobot` advanced by one control ``period`` (s) per tick.
 
     The period is split into ``ceil(period / MAX_PHYSICS_STEP_S)`` equal physics steps, so
     simulated time advances exactly one period per tick. ``viewer``: open MuJoCo's passive viewer
     at :meth:`start` (when a display exists; otherwise a warning and headless). ``people``: capsule
-    sets in the scene (:class:`~services.executor.sim.SimRobot`).
+    sets in the scene (:class:`~services.executor.mujoco.sim.SimRobot`).
     """
 
     def __init__(self, spec: RobotSpec, gains: PDGains, period: float, viewer: bool = False, people: int = 1) -> None:

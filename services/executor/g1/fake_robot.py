@@ -17,7 +17,7 @@ the variant lacks (e.g. waist roll/pitch with ``mode_machine`` 6) report zeros a
 Frames whose CRC is wrong are recorded and otherwise ignored, as the robot ignores them.
 
 ``SIGUSR1`` pauses/resumes ``rt/lowstate`` (a lost state stream); ``SIGTERM``/``SIGINT`` write the
-record, print a JSON summary line and exit. Run: ``python -m services.executor.g1_fake_robot
+record, print a JSON summary line and exit. Run: ``python -m services.executor.g1.fake_robot
 --interface lo --record /tmp/g1.npz`` next to ``safemimic executor --backend g1 --interface lo``.
 """
 
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.executor.g1_dds import (
+from services.executor.g1.dds import (
     DdsLink,
     IMUState_,
     LowCmd_,
@@ -42,8 +42,8 @@ from services.executor.g1_dds import (
     MotorState_,
     lowcmd_to_frame,
 )
-from services.executor.g1_frames import LOWCMD_DTYPE, lowcmd_crc
-from services.executor.g1_layout import (
+from services.executor.g1.frames import LOWCMD_DTYPE, lowcmd_crc
+from services.executor.g1.layout import (
     ARM_SDK_SLOTS,
     NUM_BODY_MOTORS,
     NUM_MOTOR_SLOTS,
@@ -174,7 +174,7 @@ class FakeG1:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m services.executor.g1_fake_robot", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m services.executor.g1.fake_robot", description=__doc__.split("\n\n")[0])
     parser.add_argument("--interface", default="lo", help="network interface for DDS (default: lo)")
     parser.add_argument("--domain", type=int, default=0, help="DDS domain id (default: 0, the robot's)")
     parser.add_argument("--mode-machine", type=int, default=5, help="LowState_.mode_machine: 5 = 29-DoF, 6 = waist locked")

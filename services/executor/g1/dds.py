@@ -12,7 +12,7 @@ Speed: CycloneDDS's generic Python (de)serializer takes 0.35–0.45 ms for one o
 messages, which at 500 Hz in both directions is most of a core. For the plain little-endian CDR
 (XCDR1) encoding every CycloneDDS writer uses by default, LowCmd_ and LowState_ override
 ``serialize``/``deserialize`` with a NumPy path (≈ 0.03 ms): that CDR body is the C struct of
-:mod:`services.executor.g1_frames` with the first motor's ``mode`` byte moved into the padding
+:mod:`services.executor.g1.frames` with the first motor's ``mode`` byte moved into the padding
 before it and everything after it 4 bytes earlier. Any other encoding takes the generic path; the
 tests check both paths give the same bytes and the same messages.
 
@@ -40,9 +40,9 @@ try:
 except ImportError as exc:  # pragma: no cover - exercised only where the package is missing
     raise ImportError(f"the G1 backend needs CycloneDDS's Python package: pip install 'safemimic[g1]' ({exc})") from exc
 
-from services.executor.g1_control import G1State
-from services.executor.g1_frames import LOWCMD_DTYPE, LOWSTATE_DTYPE, MOTOR_CMD_DTYPE, MOTOR_STATE_DTYPE
-from services.executor.g1_layout import NUM_BODY_MOTORS, NUM_MOTOR_SLOTS
+from services.executor.g1.state import G1State
+from services.executor.g1.frames import LOWCMD_DTYPE, LOWSTATE_DTYPE, MOTOR_CMD_DTYPE, MOTOR_STATE_DTYPE
+from services.executor.g1.layout import NUM_BODY_MOTORS, NUM_MOTOR_SLOTS
 
 __all__ = [
     "DdsLink",
@@ -188,7 +188,7 @@ _IMU_FIELDS = ("quaternion", "gyroscope", "accelerometer", "rpy", "temperature")
 
 
 def frame_to_lowcmd(frame: np.ndarray) -> LowCmd_:
-    """The DDS message of a :data:`~services.executor.g1_frames.LOWCMD_DTYPE` frame (float32 values
+    """The DDS message of a :data:`~services.executor.g1.frames.LOWCMD_DTYPE` frame (float32 values
     as the frame holds them, its CRC as sealed)."""
     return LowCmd_(
         mode_pr=int(frame["mode_pr"]),
@@ -200,7 +200,7 @@ def frame_to_lowcmd(frame: np.ndarray) -> LowCmd_:
 
 
 def lowcmd_to_frame(message: LowCmd_) -> np.ndarray:
-    """A LowCmd_ as a :data:`~services.executor.g1_frames.LOWCMD_DTYPE` frame (zero padding)."""
+    """A LowCmd_ as a :data:`~services.executor.g1.frames.LOWCMD_DTYPE` frame (zero padding)."""
     frame = np.zeros((), dtype=LOWCMD_DTYPE)
     frame["mode_pr"] = message.mode_pr
     frame["mode_machine"] = message.mode_machine
@@ -212,7 +212,7 @@ def lowcmd_to_frame(message: LowCmd_) -> np.ndarray:
 
 
 def lowstate_to_record(message: LowState_) -> np.ndarray:
-    """A LowState_ as a :data:`~services.executor.g1_frames.LOWSTATE_DTYPE` record (zero padding)."""
+    """A LowState_ as a :data:`~services.executor.g1.frames.LOWSTATE_DTYPE` record (zero padding)."""
     record = np.zeros((), dtype=LOWSTATE_DTYPE)
     for name in ("version", "mode_pr", "mode_machine", "tick", "reserve", "crc"):
         record[name] = getattr(message, name)
@@ -229,7 +229,7 @@ def _rows(records: np.ndarray) -> list[tuple[Any, ...]]:
 
 
 def record_to_lowstate(record: np.ndarray) -> LowState_:
-    """The LowState_ message of a :data:`~services.executor.g1_frames.LOWSTATE_DTYPE` record."""
+    """The LowState_ message of a :data:`~services.executor.g1.frames.LOWSTATE_DTYPE` record."""
     return LowState_(
         version=record["version"].tolist(), mode_pr=int(record["mode_pr"]), mode_machine=int(record["mode_machine"]),
         tick=int(record["tick"]), imu_state=IMUState_(*_rows(record["imu_state"].reshape(1))[0]),

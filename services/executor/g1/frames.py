@@ -27,7 +27,7 @@ import binascii
 
 import numpy as np
 
-from services.executor.g1_layout import NUM_MOTOR_SLOTS
+from services.executor.g1.layout import NUM_MOTOR_SLOTS
 
 __all__ = [
     "IMU_STATE_DTYPE",

@@ -1,6 +1,6 @@
 """What the executor service drives: a robot that servos the 8 imitation joints (architecture §1).
 
-:class:`Executor` is the interface; :class:`~services.executor.mujoco_executor.MujocoExecutor`
+:class:`Executor` is the interface; :class:`~services.executor.mujoco.executor.MujocoExecutor`
 (the MuJoCo simulation) implements it here, the G1 hardware adapter is the second
 implementation. The service calls, once per control period: :meth:`Executor.apply_command`
 (the target to hold), :meth:`Executor.tick` (advance the simulation / send the low-level
