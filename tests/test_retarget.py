@@ -139,3 +139,15 @@ def test_rate_is_s_times_theta_rate_mirrored_and_zero_where_clipped_or_invalid(p
     r(th, valid)
     dq = r.rate(np.where(np.arange(8) == 0, np.nan, rate))
     assert dq[7 if r.mirror else 4] == 0.0 and dq[0] == 0.0
+
+
+def test_hold_makes_unseen_joints_continue_from_the_given_target(pipeline) -> None:
+    r = pipeline.retargeter
+    current = np.clip(r.q_home + 0.3, r.q_min, r.q_max)
+    r.hold(current + 100.0)  # clipped to the limits
+    np.testing.assert_array_equal(r(np.zeros(8), np.zeros(8, bool)), r.q_max)
+    r.hold(current)
+    valid = np.zeros(8, bool)
+    valid[2] = True  # only one shoulder pitch is seen (the person's left: the robot's right if mirrored)
+    q = r(theta(left_shoulder_pitch=0.5), valid)
+    assert np.count_nonzero(q != current) == 1  # that joint follows; every other keeps the held target

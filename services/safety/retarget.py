@@ -68,6 +68,12 @@ class Retargeter:
         self._last = np.where(usable, q, self._last)
         return self._last.copy()
 
+    def hold(self, q_nom: np.ndarray) -> None:
+        """Continue from ``q_nom`` (8,) (clipped to the limits): joints whose angles this retargeter
+        has not seen valid yet keep it instead of home (a replacement retargeter takes over the
+        current target without a jump)."""
+        self._last = np.clip(np.asarray(q_nom, dtype=np.float64), self.q_min, self.q_max)
+
     def rate(self, theta_rate: np.ndarray) -> np.ndarray:
         """q̇_nom (8,) rad/s of the newest call's q_nom: S ⊙ θ̇' (θ̇ mirrored like θ), 0 where that
         call clipped q_nom at a joint limit or held it (angle invalid), or where θ̇ is not finite."""

@@ -331,7 +331,7 @@ class SafetyService(ScheduledService):
         if retargeter is not old_retargeter:
             # Joints whose angles the new retargeter has not seen valid yet keep the current q_nom
             # (the retargeter's hold value, which it otherwise initialises to home).
-            retargeter._last = np.clip(self._q_nom, retargeter.q_min, retargeter.q_max)
+            retargeter.hold(self._q_nom)
         self.conf = new
         self.config_version = pending.version
         self._human_dirty = True
