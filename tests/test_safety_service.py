@@ -458,9 +458,9 @@ def test_stale_human_keeps_capsules_and_stops_imitating(service: SafetyService) 
     result = service.tick(received + service.conf.safety.human_timeout_s + 0.1)
     assert service._human_stale and result.rows.min_h(False) is not None  # the person is still avoided
     np.testing.assert_allclose(result.u, 0.0, atol=1e-9)  # q_nom = q_cbf: no longer imitating
-    assert service.watchdog_trips["human_state"] == 1
+    assert service.watchdogs.trips["human_state"] == 1
     service.tick(received + service.conf.safety.human_timeout_s + 0.2)
-    assert service.watchdog_trips["human_state"] == 1  # counted once per trip
+    assert service.watchdogs.trips["human_state"] == 1  # counted once per trip
     # a HumanState in another frame is refused by validation: it can never reach the barrier
     with pytest.raises(ValidationError, match="frame_id"):
         HumanState.model_validate({**human_state(np.zeros(8), person(0.2)[1]).model_dump(), "frame_id": "camera"})
@@ -514,13 +514,13 @@ def test_vanished_person_is_held_and_stops_imitating_until_forgotten(service: Sa
     assert service._memory.lost and not service._human_stale
     assert result.rows.min_h(False) is not None  # the remembered capsules are still avoided
     np.testing.assert_allclose(result.u, 0.0, atol=1e-9)  # q_nom = q_cbf: no longer imitating
-    assert service.watchdog_trips["human_lost"] == 1
+    assert service.watchdogs.trips["human_lost"] == 1
     service._publish_status(0.0, result, result.mode)  # SafetyStatus.human_lost is reported
     time.sleep(hold + 0.01)
     service.human.set(gone.model_copy(update={"seq": 2}))  # past the hold: forgotten
     result = service.tick(service.human.get().received + 0.01)
     assert not service._memory.lost and result.rows.min_h(False) is None  # rows disabled
-    assert service.watchdog_trips["human_lost"] == 1
+    assert service.watchdogs.trips["human_lost"] == 1
 
 
 def test_config_update_swaps_pipeline_and_rate(service: SafetyService) -> None:

@@ -22,21 +22,9 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    Every command differs from the previous one by at most u_max·Δt per joint;
 5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`.
 
-Watchdogs (each shown in SafetyStatus and counted in ``watchdog_trips`` when it trips):
-
-- ``human_state``: the newest HumanState is older than ``safety.human_timeout_s`` (local receive
-  time) — keep its capsules (the person may still be there) without their velocity term and stop
-  imitating: q_nom = q_cbf (``human_stale``);
-- ``human_source``: the perception service's liveliness token is gone (its host crashed or its link
-  was cut: noticed within the Zenoh lease) — the same as a stale human state (``human_source_lost``);
-- ``human_lost``: a fresh HumanState marks invalid a capsule that was valid within
-  ``safety.lost_human_hold_s`` (the person vanished from view) — keep its last valid capsule
-  without its velocity term and stop imitating: q_nom = q_cbf, until the capsule is valid again or
-  forgotten after the hold (``human_lost``);
-- ``joint_state``: no JointState for ``safety.joint_state_timeout_s`` — keep integrating from
-  q_cbf (``joint_state_stale``);
-- ``executor_command``: the executor reports its commands stale and holds (``executor_holding``);
-- ``resync``: a resync started (``resyncing``).
+Watchdogs (:mod:`services.safety.watchdogs`: ``human_state``, ``human_source``, ``human_lost``,
+``joint_state``, ``executor_command``, ``resync``), each shown in SafetyStatus and counted in
+``watchdog_trips`` when it trips.
 
 Scheduling is absolute (tick k is due at start + k·Δt) and the thread sleeps on a
 ``threading.Event`` between ticks — never a busy loop, which would hold the GIL and delay the
@@ -65,6 +53,7 @@ from services.safety.assembly import SafetyPipeline, build_pipeline, make_retarg
 from services.safety.filter import FilterParams, StepResult
 from services.safety.human_memory import HumanMemory
 from services.safety.nominal import NominalTrack
+from services.safety.watchdogs import Watchdogs
 from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
@@ -143,7 +132,7 @@ class SafetyService(ScheduledService):
     Inputs: ``human`` (:class:`~shared.bus.Newest`: decoded when a tick reads it), ``joint_state``
     (a :class:`~shared.bus.Latest` holder fed by the bus) and
     :meth:`on_config` (the ``config`` subscriber). :meth:`tick` runs one control step.
-    The public counters (``ticks``, ``deadline_misses``, ``watchdog_trips``, ``nonfinite_holds``,
+    The public counters (``ticks``, ``deadline_misses``, ``watchdogs.trips``, ``nonfinite_holds``,
     ``config_version``) and :meth:`counters` describe what happened so far.
     """
 
@@ -154,8 +143,7 @@ class SafetyService(ScheduledService):
         # control state
         self.ticks = 0
         self.schedule = FixedRateSchedule(self.period)
-        self.watchdog_trips: Counter[str] = Counter()
-        self._tripped: set[str] = set()  # watchdogs tripped now
+        self.watchdogs = Watchdogs(log)
         self.nonfinite_holds = 0
         self.config_version = 0
         self.tick_errors = StepErrors(log, "safety tick", _MAX_CONSECUTIVE_ERRORS)
@@ -205,18 +193,7 @@ class SafetyService(ScheduledService):
     @property
     def resyncs(self) -> int:
         """Resyncs started so far (the robot was found more than RESYNC_TOLERANCE from q_cbf)."""
-        return self.watchdog_trips["resync"]
-
-    def _watch(self, name: str, tripped: bool, detail: str = "") -> bool:
-        """Record watchdog ``name``'s state; count and log each trip (a change to tripped)."""
-        if tripped and name not in self._tripped:
-            self._tripped.add(name)
-            self.watchdog_trips[name] += 1
-            log.warning("watchdog %s tripped%s (%d so far)", name, f": {detail}" if detail else "", self.watchdog_trips[name])
-        elif not tripped and name in self._tripped:
-            self._tripped.discard(name)
-            log.info("watchdog %s cleared", name)
-        return tripped
+        return self.watchdogs.trips["resync"]
 
     # subscriber callbacks (Zenoh threads) ---------------------------------------------------
     def on_alive(self, service: str, alive: bool) -> None:
@@ -345,12 +322,12 @@ class SafetyService(ScheduledService):
         if received is None:
             return
         age = now - received.received
-        self._watch("joint_state", age > self.conf.safety.joint_state_timeout_s, f"newest is {age:.3f} s old")
+        self.watchdogs.watch("joint_state", age > self.conf.safety.joint_state_timeout_s, f"newest is {age:.3f} s old")
         if received is self._joint_state_seen:
             return
         self._joint_state_seen = received
         message = received.message
-        self._watch("executor_command", message.command_stale, "the executor holds its last target")
+        self.watchdogs.watch("executor_command", message.command_stale, "the executor holds its last target")
         filt = self.pipeline.filter
         if not self._synced:
             filt.reset(message.q_command if message.q_command is not None else message.q)
@@ -358,12 +335,12 @@ class SafetyService(ScheduledService):
             log.info("q_cbf synchronised to the executor's %s", "target" if message.q_command is not None else "measured q")
             return
         deviation = float(np.max(np.abs(message.q - filt.q_cbf)))
-        if self._resync_target is None and not self._watch("resync", deviation > RESYNC_TOLERANCE,
+        if self._resync_target is None and not self.watchdogs.watch("resync", deviation > RESYNC_TOLERANCE,
                                                           f"measured q is {deviation:.2f} rad from q_cbf"):
             return
         if deviation <= RESYNC_DONE:
             self._resync_target = None
-            self._watch("resync", False)
+            self.watchdogs.watch("resync", False)
         else:
             self._resync_target = np.clip(message.q, filt.q_min, filt.q_max)
 
@@ -375,9 +352,9 @@ class SafetyService(ScheduledService):
                 self.pipeline.barrier.set_external(None)
                 self._human_dirty = False
             return None
-        source_lost = self._watch("human_source", self._human_source_lost, "perception's liveliness token is gone")
+        source_lost = self.watchdogs.watch("human_source", self._human_source_lost, "perception's liveliness token is gone")
         age = now - received.received
-        timed_out = self._watch("human_state", age > self.conf.safety.human_timeout_s, f"newest is {age:.2f} s old")
+        timed_out = self.watchdogs.watch("human_state", age > self.conf.safety.human_timeout_s, f"newest is {age:.2f} s old")
         stale = source_lost or timed_out
         if received is self._human_used and stale == self._human_stale and not self._human_dirty:
             return received
@@ -392,7 +369,7 @@ class SafetyService(ScheduledService):
             self._nominal.update(self._q_nom, retargeter.rate(message.theta_rate), message.stamp, received.received,
                                  safety.extrapolate_max_s, retargeter.q_min, retargeter.q_max)
         self._human_used, self._human_stale, self._human_dirty = received, stale, False
-        self._watch("human_lost", self._memory.lost, f"held: {', '.join(self._memory.lost_capsules)}")
+        self.watchdogs.watch("human_lost", self._memory.lost, f"held: {', '.join(self._memory.lost_capsules)}")
         return received
 
     def _publish_status(self, now: float, result: StepResult, mode: SafetyMode) -> None:
@@ -409,14 +386,14 @@ class SafetyService(ScheduledService):
                 step_time_ms=self._last_step_s * 1e3,
                 deadline_misses=self.deadline_misses,
                 human_stale=self._human_stale,
-                joint_state_stale=self._joint_state_seen is None or "joint_state" in self._tripped,
+                joint_state_stale=self._joint_state_seen is None or self.watchdogs.tripped("joint_state"),
                 human_source_lost=self._human_source_lost,
                 human_lost=self._memory.lost,
                 relaxed_pairs=sorted(self._relaxed_since_status)[:256],
                 person_intrusion=self._intrusion_since_status,
-                executor_holding="executor_command" in self._tripped,
+                executor_holding=self.watchdogs.tripped("executor_command"),
                 resyncing=self._resync_target is not None,
-                watchdog_trips=dict(self.watchdog_trips),
+                watchdog_trips=dict(self.watchdogs.trips),
                 dropped=self.dropped(),
                 config_version=self.config_version,
                 backend=self.pipeline.filter.backend_name,
@@ -499,7 +476,7 @@ class SafetyService(ScheduledService):
             "max_late_ms": self.max_late_s * 1e3,
             "resyncs": self.resyncs,
             "superseded": {topic: int(n) for topic, n in self.bus.superseded.items() if n},
-            "watchdog_trips": dict(self.watchdog_trips),
+            "watchdog_trips": dict(self.watchdogs.trips),
             "nonfinite_holds": self.nonfinite_holds,
             "tick_errors": self.tick_errors.total,
             "config_version": self.config_version,
