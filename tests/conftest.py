@@ -1,94 +1,13 @@
-"""Shared test helpers: free loopback ports, real subprocesses with cleanup, team data paths."""
+"""Fixtures the tests share; the helpers behind them are in ``tests/support/``."""
 
 from __future__ import annotations
 
-import json
-import os
-import queue
-import socket
-import subprocess
 import sys
-import threading
-import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
-
-
-def _team_shared() -> Path:
-    """The team folder (paper, real G1 model, mocap clips): $SAFEMIMIC_TEAM_SHARED, else beside the
-    checkout, else /work/shared (where CI's clean clone may live elsewhere). Tests only."""
-    candidates = [os.environ.get("SAFEMIMIC_TEAM_SHARED"), REPO.parent / "shared", "/work/shared"]
-    for candidate in candidates:
-        if candidate and (Path(candidate) / "robots" / "unitree_g1").is_dir():
-            return Path(candidate)
-    return REPO.parent / "shared"
-
-
-TEAM_SHARED = _team_shared()
-G1_MJCF = TEAM_SHARED / "robots" / "unitree_g1" / "g1.xml"
-MOCAP_DIR = TEAM_SHARED / "data" / "mocap"
-
-
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-class Proc:
-    """A child process whose stdout lines are collected by a reader thread."""
-
-    def __init__(self, args: list[str], env: dict[str, str] | None = None) -> None:
-        self.args = args
-        self.popen = subprocess.Popen(
-            args,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            cwd=REPO,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
-        )
-        self.lines: queue.Queue[str] = queue.Queue()
-        self.output: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.popen.stdout is not None
-        for line in self.popen.stdout:
-            self.output.append(line)
-            self.lines.put(line)
-
-    def wait_for(self, predicate, timeout: float = 15.0) -> str:
-        """The first new stdout line satisfying ``predicate``; fails with the output so far."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
-            except queue.Empty:
-                break
-            if predicate(line):
-                return line
-        raise AssertionError(f"timed out waiting on {self.args}; output:\n{''.join(self.output)[-3000:]}")
-
-    def wait_json(self, event: str, timeout: float = 15.0) -> dict:
-        def is_event(line: str) -> bool:
-            return line.startswith("{") and json.loads(line).get("event") == event
-
-        return json.loads(self.wait_for(is_event, timeout))
-
-    def stop(self) -> None:
-        if self.popen.poll() is None:
-            self.popen.terminate()
-            try:
-                self.popen.wait(5)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(5)
+from tests.support.processes import Proc
 
 
 @pytest.fixture

@@ -20,7 +20,7 @@ from shared.messages import (
     SafetyMode,
     SafetyStatus,
 )
-from tests.conftest import free_port
+from tests.support.processes import free_port
 
 pytestmark = pytest.mark.integration
 

@@ -38,7 +38,8 @@ from services.perception.camera.model import (
 from services.perception.sources import SourceUnavailable, open_source
 from shared.config import CameraExtrinsics, CameraIntrinsics, PerceptionConfig
 from shared.names import KEYPOINT_INDEX as K
-from tests.conftest import REPO, free_port
+from tests.support.processes import free_port
+from tests.support.team import REPO
 from tests.test_perception_service import LIGHT_RUNNER
 
 MIN_CONFIDENCE = PerceptionConfig().point_filter.min_confidence

@@ -25,7 +25,7 @@ import pytest
 from shared.bus import Bus
 from shared.config import BusConfig, load_config
 from shared.messages import ConfigUpdate, HumanState, SafetyMode, SafetyStatus
-from tests.conftest import Proc, free_port
+from tests.support.processes import Proc, free_port
 
 pytestmark = pytest.mark.integration
 

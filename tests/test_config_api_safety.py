@@ -10,7 +10,7 @@ import pytest
 
 from services.safety.assembly import build_pipeline
 from shared.config import load_config
-from tests.conftest import free_port
+from tests.support.processes import free_port
 from tests.test_config_api import AUTH, ApiServer, wait_until
 
 

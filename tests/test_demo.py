@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from safemimic.stack import SERVICES
-from tests.conftest import MOCAP_DIR
+from tests.support.team import MOCAP_DIR
 
 pytestmark = pytest.mark.integration
 

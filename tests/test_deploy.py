@@ -33,7 +33,8 @@ from services.perception.scenarios import get_scenario
 from shared.bus import Bus
 from shared.config import BusConfig
 from shared.skeleton import read_recording
-from tests.conftest import REPO, free_port
+from tests.support.processes import free_port
+from tests.support.team import REPO
 
 DOCKERFILE = REPO / "deploy" / "Dockerfile"
 LOCAL = Site(router="tls/127.0.0.1:17447", api_store="/tmp/x/config.json", skeleton="/tmp/x/p.npz", api_port=18080,

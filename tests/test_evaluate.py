@@ -17,7 +17,7 @@ from safemimic.evaluate.metrics import RUN_KEYS, TIMING_KEYS, deterministic_part
 from services.perception.placement import Placement
 from services.perception.scenarios import get_scenario, scenario_recording
 from shared.names import KEYPOINT_NAMES
-from tests.conftest import G1_MJCF, MOCAP_DIR, REPO
+from tests.support.team import G1_MJCF, MOCAP_DIR, REPO
 
 SCENARIOS = ("cross-arm-reach", "side-by-side-arm-raise")
 

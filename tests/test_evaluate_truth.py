@@ -23,7 +23,7 @@ from services.safety.kinematics import RobotKinematics
 from shared.config import ExecutorConfig
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX, KEYPOINT_NAMES
 from shared.robot_spec import configured_robot_spec, default_robot_spec_path, load_robot_spec
-from tests.conftest import G1_MJCF
+from tests.support.team import G1_MJCF
 from tests.test_executor_sim import person_capsules
 
 GAINS = PDGains.from_config(ExecutorConfig())

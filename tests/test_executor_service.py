@@ -18,7 +18,8 @@ from shared.config import BusConfig
 from shared.messages import HumanState, JointCommand, JointState
 from shared.names import CAPSULE_NAMES
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
-from tests.conftest import G1_MJCF, free_port
+from tests.support.processes import free_port
+from tests.support.team import G1_MJCF
 from tests.test_bus import AliveWatcher
 
 pytestmark = pytest.mark.integration

@@ -16,7 +16,7 @@ from services.executor.mujoco.sim import PDGains, SimModelError, SimRobot
 from shared.config import ExecutorConfig
 from shared.names import CAPSULE_NAMES
 from shared.robot_spec import RobotSpec, default_robot_spec_path, load_robot_spec
-from tests.conftest import G1_MJCF
+from tests.support.team import G1_MJCF
 
 GAINS = PDGains.from_config(ExecutorConfig())
 OURS = load_robot_spec(default_robot_spec_path())

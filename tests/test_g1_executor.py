@@ -23,7 +23,7 @@ from shared.bus import Bus  # noqa: E402
 from shared.config import BusConfig  # noqa: E402
 from shared.messages import JointCommand, JointState  # noqa: E402
 from shared.robot_spec import default_robot_spec_path, load_robot_spec  # noqa: E402
-from tests.conftest import free_port  # noqa: E402
+from tests.support.processes import free_port  # noqa: E402
 from tests.test_bus import AliveWatcher  # noqa: E402
 
 pytestmark = pytest.mark.integration

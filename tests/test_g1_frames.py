@@ -29,7 +29,7 @@ from services.executor.g1.layout import (
 )
 from shared.names import IMITATION_JOINT_NAMES
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
-from tests.conftest import G1_MJCF
+from tests.support.team import G1_MJCF
 
 #: unitree_sdk2py/utils/crc.py packs these (4-byte aligned, little endian).
 SDK_LOWCMD_FORMAT = "<2B2x" + "B3x5fI" * 35 + "5I"

@@ -26,7 +26,7 @@ from shared.robot_spec import (
     default_robot_spec_path,
     load_robot_spec,
 )
-from tests.conftest import G1_MJCF, REPO
+from tests.support.team import G1_MJCF, REPO
 
 SPEC_PATH = REPO / "config" / "robots" / "g1.yaml"
 OUR_MJCF = REPO / "config" / "robots" / "safemimic_g1.xml"

@@ -27,7 +27,8 @@ import pytest
 from safemimic.certs import make_stack
 from safemimic.launch import python_argv
 from safemimic.stack import API_PORT, ROUTER_PORT, Site, command, router_command, write_paper_scenarios
-from tests.conftest import REPO, Proc
+from tests.support.processes import Proc
+from tests.support.team import REPO
 
 pytestmark = pytest.mark.integration
 

@@ -17,7 +17,7 @@ from shared.config import PoseAnglesConfig
 from shared.names import KEYPOINT_INDEX as K
 from shared.names import POSE_ANGLE_NAMES
 from shared.skeleton import read_recording
-from tests.conftest import MOCAP_DIR
+from tests.support.team import MOCAP_DIR
 
 ALL_VALID = np.ones(15, dtype=bool)
 FPS = 30.0

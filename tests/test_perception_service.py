@@ -23,7 +23,8 @@ from shared.config import BusConfig, HumanConfig, load_config
 from shared.messages import ConfigUpdate, HumanState, Message
 from shared.names import KEYPOINT_INDEX as K
 from shared.skeleton import write_recording
-from tests.conftest import REPO, free_port
+from tests.support.processes import free_port
+from tests.support.team import REPO
 
 pytestmark = pytest.mark.integration
 

@@ -23,7 +23,7 @@ from shared.config import HumanConfig, PerceptionConfig
 from shared.geometry import segment_closest_points
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX as K, KEYPOINT_NAMES
 from shared.skeleton import read_recording
-from tests.conftest import MOCAP_DIR, REPO
+from tests.support.team import MOCAP_DIR, REPO
 
 FPS = 30.0
 # The robot in its own frame at home (config/robots/g1.yaml + safemimic_g1.xml, pelvis at 0.793 m):

@@ -21,7 +21,7 @@ from shared.bus import RESTART_SILENCE_S, Bus, SourceOrder
 from shared.codec import encode
 from shared.config import BusConfig
 from shared.messages import JointState
-from tests.conftest import free_port
+from tests.support.processes import free_port
 
 
 def joint_state(seq: int, stamp: float, source: str = "executor") -> JointState:

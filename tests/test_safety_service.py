@@ -28,7 +28,7 @@ from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, 
 from shared.names import CAPSULE_NAMES, KEYPOINT_NAMES, POSE_ANGLE_NAMES
 from shared.realtime import enter_realtime, leave_realtime
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
-from tests.conftest import Proc, free_port
+from tests.support.processes import Proc, free_port
 
 LEFT_SHOULDER_PITCH = POSE_ANGLE_NAMES.index("left_shoulder_pitch")  # θ index = joint index
 LEFT_FOREARM = CAPSULE_NAMES.index("left_forearm")

@@ -34,7 +34,8 @@ from shared.bus import Bus
 from shared.config import BusConfig, ConfigError, TlsConfig, load_config
 from shared.messages import ConfigUpdate, JointCommand, JointState, SafetyMode, SafetyStatus
 from shared.tls import tls_files, zenoh_tls
-from tests.conftest import REPO, free_port
+from tests.support.processes import free_port
+from tests.support.team import REPO
 from tests.test_bus import sample_messages
 
 #: How long a message that is going to arrive takes at most here (loopback, a loaded 2-core machine).

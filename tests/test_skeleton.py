@@ -7,7 +7,7 @@ import pytest
 
 from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
 from shared.skeleton import Recording, RecordingError, read_recording, write_recording
-from tests.conftest import MOCAP_DIR
+from tests.support.team import MOCAP_DIR
 
 
 def standing_pose() -> np.ndarray:

@@ -16,7 +16,7 @@ from shared.bus import Bus  # noqa: E402
 from shared.config import BusConfig, load_config  # noqa: E402
 from shared.messages import JointState, SafetyMode, SafetyStatus  # noqa: E402
 from shared.robot_spec import configured_robot_spec  # noqa: E402
-from tests.conftest import free_port  # noqa: E402
+from tests.support.processes import free_port  # noqa: E402
 from tests.test_viewer_recording import rrd_rows  # noqa: E402
 
 

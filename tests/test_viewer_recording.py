@@ -23,7 +23,7 @@ from services.viewer.draw import binding_segments  # noqa: E402
 from services.viewer.robot_mesh import RobotMesh, RobotMeshError  # noqa: E402
 from shared.config import load_config  # noqa: E402
 from shared.robot_spec import configured_robot_spec  # noqa: E402
-from tests.conftest import G1_MJCF, REPO  # noqa: E402
+from tests.support.team import G1_MJCF, REPO  # noqa: E402
 
 RERUN = Path(sys.executable).parent / "rerun"
 _CHUNK = re.compile(r"with (\d+) rows .* - (/\S+) - data columns: \[(.*)\]")
