@@ -57,11 +57,13 @@ def machine() -> dict[str, Any]:
 
 
 #: A machine keeps time for a 500 Hz loop if it wakes a SCHED_FIFO thread sleeping to an absolute
-#: deadline at most this late at p99 (ms): an eighth of the 2 ms period. A bare-metal Linux box
-#: does (≈ 0.05 ms); a VM whose idle vCPUs halt may not (measured on the 2-core CI VM: p99 ≈ 1 ms,
-#: max ≈ 3 ms when idle, but p99 0.05 ms with both vCPUs busy: the host takes that long to run a
-#: halted vCPU again, which no guest scheduling fixes).
-WAKE_P99_MAX_MS = 0.25
+#: deadline at most this late (ms) at p99, and never later than :data:`WAKE_MAX_MS`. A bare-metal
+#: Linux box does (p99 ≈ 0.05–0.1 ms); a VM whose idle vCPUs halt does not (measured on the 2-core
+#: CI VM over 1–2 s probes: p99 0.2–1.0 ms, max 1.2–3 ms when idle, but p99 0.05 ms with both vCPUs
+#: busy: the host takes that long to run a halted vCPU again, which no guest scheduling fixes; a
+#: probe at p99 0.2 ms, max 1.2 ms was followed by 1.4 % missed deadlines in the service).
+WAKE_P99_MAX_MS = 0.1
+WAKE_MAX_MS = 0.5
 
 
 def wake_latency(seconds: float = 1.0, period_s: float = 0.002, priority: int = 10) -> dict[str, Any]:
@@ -69,7 +71,7 @@ def wake_latency(seconds: float = 1.0, period_s: float = 0.002, priority: int = 
     (normal scheduling if refused) sleeps to absolute deadlines every ``period_s`` for ``seconds``,
     doing ~0.1 ms of work each period; its lateness (ms) p50/p99/max, the host's steal time over
     the window (% of CPU time, ``/proc/stat``; None elsewhere), and ``keeps_time``: p99 within
-    :data:`WAKE_P99_MAX_MS`. Deadline budgets measured on a machine that does not keep time say
+    :data:`WAKE_P99_MAX_MS` and the worst within :data:`WAKE_MAX_MS`. Deadline budgets measured on a machine that does not keep time say
     more about the host than about the code."""
     late: list[float] = []
     scheduling: list[str] = []
@@ -94,9 +96,10 @@ def wake_latency(seconds: float = 1.0, period_s: float = 0.002, priority: int = 
     steal = None
     if steal_before and steal_after and (total := steal_after[0] - steal_before[0]) > 0:
         steal = round(100.0 * (steal_after[1] - steal_before[1]) / total, 2)
-    p99 = float(np.percentile(ms, 99))
-    return {"p50_ms": round(float(np.percentile(ms, 50)), 3), "p99_ms": round(p99, 3), "max_ms": round(float(ms.max()), 3),
-            "steal_pct": steal, "scheduling": scheduling[0], "keeps_time": p99 <= WAKE_P99_MAX_MS}
+    p99, worst = float(np.percentile(ms, 99)), float(ms.max())
+    return {"p50_ms": round(float(np.percentile(ms, 50)), 3), "p99_ms": round(p99, 3), "max_ms": round(worst, 3),
+            "steal_pct": steal, "scheduling": scheduling[0],
+            "keeps_time": p99 <= WAKE_P99_MAX_MS and worst <= WAKE_MAX_MS}
 
 
 def _cpu_times() -> tuple[int, int] | None:

@@ -383,8 +383,13 @@ def test_config_updates_apply_and_invalid_ones_are_counted(live: Live) -> None:
 @pytest.mark.integration
 def test_stale_human_keeps_capsules_and_is_reported(live: Live) -> None:
     humans = HumanPublisher(live.bus, lambda: human_state(np.zeros(8), person(1.5)[1]))
-    # this test's person (1.5 m away), not the one an earlier test left in the shared service
+    # The shared service starts stale (the tests before left it so): wait until it holds this test's
+    # person (1.5 m away), then keep publishing a few frames, so that the statuses right after the
+    # last put are fresh ones and the first stale one is the timeout's (stopping at the first fresh
+    # status, the only put could be the first, and a status computed before it arrived was taken
+    # for the timeout: stale after 0 s).
     live.rec.wait_status(lambda s: not s.human_stale and s.min_h_human is not None and s.min_h_human > 0.5, timeout=3)
+    time.sleep(0.2)
     last_put = humans.stop()
     status = live.rec.wait_status(lambda s: s.human_stale, timeout=3)
     stale_after = next(r for r, s in list(live.rec.statuses) if r > last_put and s.human_stale) - last_put
