@@ -1,8 +1,9 @@
 """Point filter: lag on real motion against jitter on still photographs, EMA against One Euro.
 
-* **lag** (ms): for each development clip (architecture §6 ``.npz``, ``$SAFEMIMIC_TEAM_SHARED/data/mocap``
-  or ``../shared/data/mocap``), the delay d that best aligns the filtered keypoints with the raw
-  ones: d* = argmin_d mean_{t,k} ‖x̂_k(t) − x_k(t − d)‖² over d ∈ [0, 200] ms in 1 ms steps (x linearly
+* **lag** (ms): for each motion clip (architecture §6 ``.npz``) in the folder ``$SAFEMIMIC_MOCAP_DIR``
+  names (``make bench`` passes the team's development clips; none: no lag figures), the delay d
+  that best aligns the filtered keypoints with the raw ones:
+  d* = argmin_d mean_{t,k} ‖x̂_k(t) − x_k(t − d)‖² over d ∈ [0, 200] ms in 1 ms steps (x linearly
   interpolated between frames; the first 0.5 s skipped). Reported per clip and the mean over clips.
 * **jitter** (mm): the camera source (BlazePose → PnP → robot frame) on scikit-image's
   ``astronaut.png`` and ``camera.png``, each written as a 30 fps video of ``STILL_FRAMES`` identical
@@ -41,13 +42,14 @@ BETAS = (0.0, 1.0, 2.0, 5.0, 10.0, 20.0, 30.0, 40.0)
 D_CUTOFF_HZ = 1.0
 
 
-def mocap_dir() -> Path:
-    """The team's development clips (as the tests find them)."""
-    repo = Path(__file__).resolve().parent.parent
-    for candidate in (os.environ.get("SAFEMIMIC_TEAM_SHARED"), repo.parent / "shared", "/work/shared"):
-        if candidate and (Path(candidate) / "data" / "mocap").is_dir():
-            return Path(candidate) / "data" / "mocap"
-    return repo.parent / "shared" / "data" / "mocap"
+#: The environment variable naming the folder of motion clips the lag is measured on.
+MOCAP_ENV = "SAFEMIMIC_MOCAP_DIR"
+
+
+def clip_paths() -> list[Path]:
+    """The ``.npz`` clips in ``$SAFEMIMIC_MOCAP_DIR`` (sorted; none if it is unset or missing)."""
+    folder = os.environ.get(MOCAP_ENV)
+    return sorted(Path(folder).glob("*.npz")) if folder and Path(folder).is_dir() else []
 
 
 def filtered(conf: PointFilterConfig, t: np.ndarray, xyz: np.ndarray, confidence: np.ndarray) -> np.ndarray:
@@ -133,7 +135,7 @@ def measure(conf: PointFilterConfig, clips: dict[str, Any], stills: dict[str, An
 
 def run() -> dict[str, Any]:
     clips = {}
-    for path in sorted(mocap_dir().glob("*.npz")):
+    for path in clip_paths():
         recording = read_recording(path)
         clips[path.stem] = (np.asarray(recording.t, float), np.asarray(recording.xyz, float))
     stills = still_frames()
