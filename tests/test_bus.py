@@ -11,42 +11,11 @@ import pytest
 from shared.bus import TOPICS, Bus, topic_key
 from shared.codec import encode
 from shared.config import BusConfig
-from shared.messages import (
-    ConfigUpdate,
-    HumanState,
-    JointCommand,
-    JointState,
-    Message,
-    SafetyMode,
-    SafetyStatus,
-)
+from shared.messages import JointState, Message
+from tests.support.messages import one_of_every_message
 from tests.support.processes import free_port
 
 pytestmark = pytest.mark.integration
-
-
-def sample_messages() -> dict[str, Message]:
-    rng = np.random.default_rng(7)
-    return {
-        "human/state": HumanState(
-            stamp=1.5,
-            keypoints=rng.normal(size=(15, 3)),
-            keypoint_valid=rng.random(15) > 0.2,
-            theta=rng.normal(size=8),
-            theta_valid=np.ones(8, bool),
-            capsules=rng.normal(size=(7, 2, 3)),
-            capsule_radii=np.full(7, 0.06),
-            capsule_valid=np.ones(7, bool),
-            capsule_velocities=rng.normal(size=(7, 2, 3)),
-        ),
-        "robot/joint_state": JointState(stamp=2.0, q=rng.normal(size=8), dq=rng.normal(size=8)),
-        "robot/command": JointCommand(stamp=3.0, q=rng.normal(size=8), dq=rng.normal(size=8), mode=SafetyMode.RELAXED, human_seq=4),
-        "safety/status": SafetyStatus(
-            stamp=4.0, mode=SafetyMode.ACTIVE, min_h_self=0.02, min_h_human=None, active_constraints=3,
-            total_constraints=72, qp_solve_time_ms=0.01, step_time_ms=0.1, dropped={"human/state": 2},
-        ),
-        "config": ConfigUpdate(stamp=5.0, version=3, changed=["safety.gamma"], config={"safety": {"gamma": 4.0}}),
-    }
 
 
 def content(message: Message) -> dict:
@@ -93,7 +62,7 @@ def exchange_every_message(spawn, test_bus: BusConfig, node_flags: list[str]) ->
         node.wait_json("ready")
         watcher.wait("bus_node", True, timeout=10)
         publishers = {topic: bus.publisher(topic) for topic in TOPICS}
-        sent = sample_messages()
+        sent = one_of_every_message()
         deadline = time.monotonic() + 10
         while len(received) < len(TOPICS) and time.monotonic() < deadline:
             for topic, message in sent.items():  # resend: the node's subscriptions may still propagate
@@ -174,7 +143,7 @@ def test_newest_decodes_only_the_newest_valid_sample_of_a_burst() -> None:
         newest = reader.newest("robot/joint_state")
         assert newest.get() is None
         publisher = writer.publisher("robot/joint_state")
-        state = sample_messages()["robot/joint_state"]
+        state = one_of_every_message()["robot/joint_state"]
         deadline = time.monotonic() + 10
         while newest.get() is None:  # the route propagates
             publisher.put(state.model_copy())

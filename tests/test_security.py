@@ -34,9 +34,9 @@ from shared.bus import Bus
 from shared.config import BusConfig, ConfigError, TlsConfig, load_config
 from shared.messages import ConfigUpdate, JointCommand, JointState, SafetyMode, SafetyStatus
 from shared.tls import tls_files, zenoh_tls
+from tests.support.messages import one_of_every_message
 from tests.support.processes import free_port
 from tests.support.team import REPO
-from tests.test_bus import sample_messages
 
 #: How long a message that is going to arrive takes at most here (loopback, a loaded 2-core machine).
 SETTLE_S = 1.0
@@ -224,7 +224,7 @@ class Inbox:
 
 @pytest.mark.integration
 def test_each_identity_puts_only_its_own_keys_and_declares_only_its_own_token(secure_router: SecureRouter) -> None:
-    messages = sample_messages()
+    messages = one_of_every_message()
     inbox = Inbox()
     with secure_router.bus("viewer") as viewer, secure_router.bus("perception") as perception, \
             secure_router.bus("health") as health, secure_router.bus("viewer", service="viewer2") as viewer2:
