@@ -7,10 +7,13 @@
     deadlines kept over the flood (the service's own ``deadline_misses`` in
     :class:`~shared.messages.SafetyStatus`, against its ticks counted by the commands' ``seq``),
     beside the machine's own wake-up latency measured just before (``machine_wake``:
-    :func:`bench.common.wake_latency`). Behaviour: the service lives through it and uses the newest
-    state: after each burst, a :class:`~shared.messages.JointCommand` carries
-    the burst's last ``human_seq`` (or a newer one) within :data:`NEWEST_MAX_PERIODS` control
-    periods, and the commands' ``human_seq`` never goes back.
+    :func:`bench.common.wake_latency`), and the newest state used within
+    :data:`NEWEST_MAX_PERIODS` control periods of wall time (``newest_within_ms``). Behaviour: the
+    service lives through it and uses the newest state: after each burst, one of the first
+    :data:`NEWEST_MAX_PERIODS` :class:`~shared.messages.JointCommand` s the service publishes after
+    the burst's last message was sent carries its ``human_seq`` (or a newer one): counted in ticks
+    that ran, so a machine that wakes the loop late misses the budget, not the behaviour; and the
+    commands' ``human_seq`` never goes back.
 
 ``config_api_load``
     ``safemimic config-api`` (uvicorn) and a real ``safemimic safety`` (which acknowledges
@@ -326,10 +329,11 @@ def human_state_flood(seconds: float) -> CheckResult:
         "flood_s": round(sent.end - sent.start, 2), **summary, "service_exit": exit_codes["safety"],
         "load_avg_before": load_before, "load_avg_after": load_avg(), "machine_wake": wake,
     }
-    behaved = (lag["newest_lag_ms_max"] <= figures["newest_max_ms"] and lag["human_seq_went_back"] == 0
+    behaved = (lag["newest_lag_ticks_max"] <= NEWEST_MAX_PERIODS and lag["human_seq_went_back"] == 0
                and len(sent.bursts) >= 1 and exit_codes["safety"] == 0)
     return CheckResult("human_state_flood", behaved, figures,
-                       {"deadlines_kept": kept["deadlines_kept"] >= MIN_DEADLINES_KEPT})
+                       {"deadlines_kept": kept["deadlines_kept"] >= MIN_DEADLINES_KEPT,
+                        "newest_within_ms": lag["newest_lag_ms_max"] <= figures["newest_max_ms"]})
 
 
 # --------------------------------------------------------------------------------------------
