@@ -193,8 +193,8 @@ def test_capsules_enclose_real_link_meshes(spec: RobotSpec) -> None:
         "right_upper_arm": [f"right_{n}" for n in arm],
         "left_forearm": [f"left_{n}" for n in fore],
         "right_forearm": [f"right_{n}" for n in fore],
-        "left_thigh": ["left_hip_roll_link", "left_hip_yaw_link"],
-        "right_thigh": ["right_hip_roll_link", "right_hip_yaw_link"],
+        "left_thigh": ["left_hip_pitch_link", "left_hip_roll_link", "left_hip_yaw_link"],
+        "right_thigh": ["right_hip_pitch_link", "right_hip_roll_link", "right_hip_yaw_link"],
     }
     skip_meshes = {"head_link", "logo_link"}  # the torso capsule runs pelvis -> neck
     for cname, bodies in links.items():

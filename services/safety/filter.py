@@ -62,7 +62,7 @@ _SLACK_TOL = 1e-6
 #: DAQP's primal tolerance in the relaxed stages
 RELAXED_PRIMAL_TOL = 1e-6
 #: a row whose largest |A_ij| is below this does not depend on u (a static link's pair)
-_STATIC_ROW = 1e-12
+STATIC_ROW = 1e-12
 #: a slack above this (m/s of barrier rate) means its row gave way
 RELAXED_TOL = 1e-6
 
@@ -177,7 +177,7 @@ class SafetyFilter:
             # capsule's disabled row) hold or fail whatever u is: they are left out of the QP, where a
             # failing one would only make it infeasible (a person touching a static link is an
             # intrusion, reported below, not a row the robot could honour).
-            kept = np.flatnonzero(np.abs(A).max(axis=1) > _STATIC_ROW)
+            kept = np.flatnonzero(np.abs(A).max(axis=1) > STATIC_ROW)
             if len(kept) < len(b):
                 A, b, soft = A[kept], b[kept], soft[kept]
         else:
