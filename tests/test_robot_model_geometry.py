@@ -110,7 +110,7 @@ def _pair_distance(m: mujoco.MjModel, d: mujoco.MjData, body_a: str, body_b: str
 
 def _arm_poses() -> list[dict[str, float]]:
     """Both arms on a grid inside the joint barriers and limits (mirrored: right roll = −left)."""
-    limits = dict(zip(SPEC.imitation_joints, zip(*_limits())))
+    limits = _joint_ranges()
     pitch_barrier = SPEC.joint_barriers["left_shoulder_pitch_joint"]
     lower_pitch = max(pitch_barrier[0], limits["left_shoulder_pitch_joint"][0])
     upper_pitch = min(pitch_barrier[1], limits["left_shoulder_pitch_joint"][1])
@@ -126,10 +126,10 @@ def _arm_poses() -> list[dict[str, float]]:
     return poses
 
 
-def _limits() -> tuple[list[float], list[float]]:
+def _joint_ranges() -> dict[str, tuple[float, float]]:
+    """The imitation joints' limits in our model (rad)."""
     m = mujoco.MjModel.from_xml_path(str(OUR_MJCF))
-    ranges = [m.jnt_range[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in SPEC.imitation_joints]
-    return [float(r[0]) for r in ranges], [float(r[1]) for r in ranges]
+    return {j: (float(m.joint(j).range[0]), float(m.joint(j).range[1])) for j in SPEC.imitation_joints}
 
 
 @pytest.mark.parametrize("which", ["ours", "real_g1"])
