@@ -26,6 +26,7 @@ from shared.robot_spec import (
     default_robot_spec_path,
     load_robot_spec,
 )
+from tests.support.meshes import mesh_points
 from tests.support.team import G1_MJCF, REPO
 
 SPEC_PATH = REPO / "config" / "robots" / "g1.yaml"
@@ -199,19 +200,7 @@ def test_capsules_enclose_real_link_meshes(spec: RobotSpec) -> None:
     skip_meshes = {"head_link", "logo_link"}  # the torso capsule runs pelvis -> neck
     for cname, bodies in links.items():
         cap = spec.capsules[cname]
-        fb = m.body(cap.frame).id
-        R, t = d.xmat[fb].reshape(3, 3), d.xpos[fb]
-        pts = []
-        for g in range(m.ngeom):
-            if m.geom_type[g] != mujoco.mjtGeom.mjGEOM_MESH or m.geom_group[g] != 2:
-                continue
-            if m.body(m.geom_bodyid[g]).name not in bodies or m.mesh(m.geom_dataid[g]).name in skip_meshes:
-                continue
-            mid = m.geom_dataid[g]
-            v = m.mesh_vert[m.mesh_vertadr[mid] : m.mesh_vertadr[mid] + m.mesh_vertnum[mid]]
-            world = v @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g]
-            pts.append((world - t) @ R)
-        P = np.vstack(pts)
+        P = mesh_points(m, d, bodies, cap.frame, skip_meshes)
         a, b = np.array(cap.a), np.array(cap.b)
         s = np.clip((P - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
         dist = np.linalg.norm(P - (a + s[:, None] * (b - a)), axis=1)

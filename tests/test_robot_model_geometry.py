@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
+from tests.support.meshes import mesh_points
 from tests.support.team import G1_MJCF, REPO
 
 OUR_MJCF = REPO / "config" / "robots" / "safemimic_g1.xml"
@@ -55,20 +56,6 @@ def _body(m: mujoco.MjModel, name: str) -> int:
     return mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
 
 
-def _mesh_vertices(m: mujoco.MjModel, body: str) -> np.ndarray:
-    """Every vertex of the visual meshes of ``body`` in its body frame (n, 3)."""
-    out = []
-    for g in np.flatnonzero(m.geom_bodyid == _body(m, body)):
-        if m.geom_type[g] != mujoco.mjtGeom.mjGEOM_MESH:
-            continue
-        mid = m.geom_dataid[g]
-        v = m.mesh_vert[m.mesh_vertadr[mid]: m.mesh_vertadr[mid] + m.mesh_vertnum[mid]].astype(float)
-        rotation = np.zeros(9)
-        mujoco.mju_quat2Mat(rotation, m.geom_quat[g])
-        out.append(v @ rotation.reshape(3, 3).T + m.geom_pos[g])
-    return np.concatenate(out)
-
-
 def _inside_primitive(m: mujoco.MjModel, g: int, points: np.ndarray) -> np.ndarray:
     """Which of ``points`` (body frame) lie inside geom ``g`` (box or cylinder: what our model uses)."""
     rotation = np.zeros(9)
@@ -90,7 +77,9 @@ def _collision_geoms(m: mujoco.MjModel, body: str) -> np.ndarray:
 @pytest.mark.parametrize("body", BOUNDED_BODIES)
 def test_our_primitives_hold_every_vertex_of_the_real_link(body: str) -> None:
     real, ours = _real_model(), mujoco.MjModel.from_xml_path(str(OUR_MJCF))
-    vertices = _mesh_vertices(real, body)  # torso_link: with the head and logo meshes it carries
+    d = mujoco.MjData(real)
+    mujoco.mj_kinematics(real, d)
+    vertices = mesh_points(real, d, [body], body)  # torso_link: with the head and logo meshes it carries
     if body == "torso_link":
         vertices = vertices[vertices[:, 2] >= CHEST_FROM_Z]
     inside = np.zeros(len(vertices), bool)
