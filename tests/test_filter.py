@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from services.safety.assembly import build_pipeline
-from services.safety.filter import STATIC_ROW
+from services.safety.filter import movable_rows
 from services.safety.qp import QPProblem, make_backend
 from shared.config import load_config
 from shared.messages import SafetyMode
@@ -60,8 +60,7 @@ def test_solution_satisfies_rows_and_is_nominal_when_free() -> None:
         if result.mode in (SafetyMode.NOMINAL, SafetyMode.ACTIVE):
             # every row some velocity can change (a person touching a locked thigh cannot be undone:
             # that row is left out of the QP and reported as an intrusion)
-            movable = np.abs(rows.A).max(axis=1) > STATIC_ROW
-            assert (rows.A @ result.u - rows.b)[movable].min(initial=0.0) >= -1e-4
+            assert (rows.A @ result.u - rows.b)[movable_rows(rows.A)].min(initial=0.0) >= -1e-4
         if result.mode is SafetyMode.NOMINAL:
             lower = np.maximum(-p.filter.params.u_max, (kin.q_min - (result.q_cbf - DT * result.u)) / DT)
             upper = np.minimum(p.filter.params.u_max, (kin.q_max - (result.q_cbf - DT * result.u)) / DT)

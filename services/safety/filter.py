@@ -62,9 +62,15 @@ _SLACK_TOL = 1e-6
 #: DAQP's primal tolerance in the relaxed stages
 RELAXED_PRIMAL_TOL = 1e-6
 #: a row whose largest |A_ij| is below this does not depend on u (a static link's pair)
-STATIC_ROW = 1e-12
+_STATIC_ROW = 1e-12
 #: a slack above this (m/s of barrier rate) means its row gave way
 RELAXED_TOL = 1e-6
+
+
+def movable_rows(A: np.ndarray) -> np.ndarray:
+    """(m,) bool: the rows of A (m, n) some velocity can change; the others (a pair of a static link
+    such as a locked thigh, a disabled row) hold or fail whatever u is and stay out of the QP."""
+    return np.abs(A).max(axis=1, initial=0.0) > _STATIC_ROW
 
 
 @dataclass
@@ -177,7 +183,7 @@ class SafetyFilter:
             # capsule's disabled row) hold or fail whatever u is: they are left out of the QP, where a
             # failing one would only make it infeasible (a person touching a static link is an
             # intrusion, reported below, not a row the robot could honour).
-            kept = np.flatnonzero(np.abs(A).max(axis=1) > STATIC_ROW)
+            kept = np.flatnonzero(movable_rows(A))
             if len(kept) < len(b):
                 A, b, soft = A[kept], b[kept], soft[kept]
         else:
