@@ -140,8 +140,9 @@ class QPBackendName(str, Enum):
 class PairGroup(str, Enum):
     """Groups of monitored capsule pairs that can be switched on and off together.
 
-    A robot–human pair is ``human``; a self pair is ``self_torso`` if it involves the torso, else
-    ``self_legs`` if it involves a thigh, else ``self_arms`` (arm against arm).
+    A robot–human pair is ``human``; a self pair is ``self_torso`` if it involves the torso or a
+    static trunk capsule (the robot description's ``static_pairs``: the arms against the pelvis),
+    else ``self_legs`` if it involves a thigh, else ``self_arms`` (arm against arm).
     """
 
     SELF_ARMS = "self_arms"

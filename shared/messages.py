@@ -204,7 +204,8 @@ class SafetyStatus(Message):
     human_lost: bool = Field(default=False, description="capsules of a person that vanished are held")
     relaxed_pairs: list[Annotated[str, StringConstraints(max_length=64)]] = Field(
         default_factory=list, max_length=256,
-        description="robot–person pairs that gave way since the previous status (mode relaxed): their rows held only A u ≥ min(b, 0)",
+        description="rows that gave way since the previous status (mode relaxed): robot–person pairs, whose rows held "
+        "only A u ≥ min(b, 0), or a hard row (self pair, joint barrier) that was already violated",
     )
     person_intrusion: bool = Field(
         default=False, description="since the previous status, a person capsule was inside the margin (h < 0) while the robot retreated or held"

@@ -140,6 +140,15 @@ class RobotSpec(BaseModel):
     )
     capsules: dict[str, CapsuleSpec]
     self_pairs: list[tuple[str, str]] = Field(default_factory=lambda: list(DEFAULT_SELF_PAIRS))
+    static_capsules: dict[str, CapsuleSpec] = Field(
+        default_factory=dict,
+        description="name -> capsule on a link no imitation joint moves (the pelvis under a moving waist): "
+        "fixed in the world while the robot stands; kept apart from the robot capsules of static_pairs "
+        "by hard CBF rows",
+    )
+    static_pairs: list[tuple[str, str]] = Field(
+        default_factory=list, description="(robot capsule, static capsule) pairs the CBF keeps apart"
+    )
 
     @field_validator("imitation_joints")
     @classmethod
@@ -204,6 +213,23 @@ class RobotSpec(BaseModel):
                 raise ValueError(f"self_pairs lists ({a!r}, {b!r}) twice")
             seen.add(key)
         return pairs
+
+    @model_validator(mode="after")
+    def _check_static(self) -> RobotSpec:
+        clash = sorted(set(self.static_capsules) & set(CAPSULE_NAMES))
+        if clash:
+            raise ValueError(f"static_capsules may not reuse the robot capsule names {clash}")
+        seen: set[tuple[str, str]] = set()
+        for robot, static in self.static_pairs:
+            if robot not in CAPSULE_NAMES or static not in self.static_capsules:
+                raise ValueError(
+                    f"static_pairs entry ({robot!r}, {static!r}) must name a robot capsule of {list(CAPSULE_NAMES)} "
+                    f"then a static capsule of {sorted(self.static_capsules)}"
+                )
+            if (robot, static) in seen:
+                raise ValueError(f"static_pairs lists ({robot!r}, {static!r}) twice")
+            seen.add((robot, static))
+        return self
 
     @model_validator(mode="after")
     def _check_cross_fields(self) -> RobotSpec:

@@ -7,6 +7,7 @@ import pytest
 
 from services.safety.assembly import build_pipeline
 from services.safety.barriers.capsules import DISABLED_B, CapsuleBarrier
+from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.pairs import N_ROBOT, make_pair_set, preset_pair_set
 from shared.config import load_config
 
@@ -170,3 +171,35 @@ def test_pair_groups_radii_and_home_from_config() -> None:
     i, j = p.pairs.names.index("left_forearm|torso"), base.pairs.names.index("left_forearm|torso")
     np.testing.assert_allclose(base_rows.h[j] - rows.h[i], 0.09 - base.kinematics.radii[2])
     np.testing.assert_allclose(p.retargeter(np.zeros(8)), [0.0, 0.1, 0.0, 0.3, 1.0, 0.0, -0.3, 1.0])
+
+
+def test_static_rows_match_finite_differences_and_are_hard() -> None:
+    """The arms against the static pelvis capsule: A = ∂h/∂q (central differences), hard rows,
+    b = −γ h (no approach term: the pelvis does not move), named by their pair."""
+    pipeline = build_pipeline(load_config(environ={}))
+    static = next(b for b in pipeline.filter.barriers if isinstance(b, StaticCapsuleBarrier))
+    assert static.row_names() == tuple(f"{a}|{b}" for a, b in pipeline.spec.static_pairs)
+    kin, rng, eps, gamma, phi = pipeline.kinematics, np.random.default_rng(11), 1e-6, 5.0, 0.02
+
+    def rows(q):
+        endpoints, jacobians = kin.compute(q)
+        return static.constraint_rows(q, endpoints, jacobians, gamma, phi, 0.3)
+
+    waist_moves = 0
+    for _ in range(100):
+        q = random_q(kin, rng)
+        block = rows(q)
+        assert not block.soft.any() and block.is_self.all()
+        np.testing.assert_allclose(block.b, -gamma * block.h)
+        fd = np.stack([(rows(q + eps * e).h - rows(q - eps * e).h) / (2 * eps) for e in np.eye(len(q))], axis=1)
+        np.testing.assert_allclose(block.A, fd, atol=1e-6)
+        waist_moves += int(np.count_nonzero(np.abs(block.A[:, :2]).max(axis=1) > 1e-3))
+    assert waist_moves > 0.9 * 100 * len(static.row_names()), "the waist moves the arms against the pelvis"
+
+
+def test_static_rows_follow_the_torso_pair_group() -> None:
+    off = build_pipeline(load_config(environ={}, overrides={"safety": {"enabled_pair_groups": ["human", "self_arms", "self_legs"]}}))
+    static = next(b for b in off.filter.barriers if isinstance(b, StaticCapsuleBarrier))
+    assert static.row_names() == ()
+    block = static.constraint_rows(off.kinematics.q_home, *off.kinematics.compute(off.kinematics.q_home), 5.0, 0.02, 0.0)
+    assert block.A.shape == (0, 8) and block.min_h(True) is None

@@ -192,7 +192,7 @@ def test_an_arm_driven_into_a_still_person_is_robot_caused() -> None:
         if touching:
             caused.append(any(c.closing_speed > CLOSING_SPEED for c in touching))
             step = probe.measure(sim.q, sim.dq, capsules, radii, valid)
-            rates.append(np.nanmin(step.rate[~probe.pairs.is_self]))
+            rates.append(np.nanmin(step.rate[~probe.is_self]))
     assert caused and np.mean(caused) > 0.5, caused
     assert min(rates) < -CLOSING_SPEED  # the capsule view agrees: the robot closes the pair
 

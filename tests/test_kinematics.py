@@ -8,6 +8,7 @@ the Jacobians, Pinocchio's getFrameJacobian for the fast path.
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import mujoco
@@ -209,6 +210,68 @@ def test_capsules_enclose_real_link_meshes(spec: RobotSpec) -> None:
         assert cap.radius - dist.max() <= 0.002, (cname, dist.max(), cap.radius)
 
 
+def _segment_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    s = np.clip((points - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+    return np.linalg.norm(points - (a + s[:, None] * (b - a)), axis=1)
+
+
+def test_pelvis_and_torso_capsules_enclose_the_trunk_over_the_waist_range(spec: RobotSpec) -> None:
+    """On a grid of waist roll × pitch over the joints' whole range, every vertex of the real G1's
+    trunk meshes (pelvis, waist yaw and roll links, torso with head and logo) lies inside the
+    torso capsule (carried by the waist) or the static pelvis capsule; the torso capsule alone
+    leaves the pelvis out by several centimetres once the waist moves."""
+    m = mujoco.MjModel.from_xml_path(str(need_real_g1()))
+    d = mujoco.MjData(m)
+    torso, pelvis = spec.capsules["torso"], spec.static_capsules["pelvis"]
+    assert pelvis.frame == "pelvis"
+    roll, pitch = (m.joint(j) for j in ("waist_roll_joint", "waist_pitch_joint"))
+    worst_union, worst_torso_only = -np.inf, -np.inf
+    for r, p in itertools.product(np.linspace(*roll.range, 9), np.linspace(*pitch.range, 9)):
+        mujoco.mj_resetData(m, d)
+        d.qpos[m.jnt_qposadr[roll.id]], d.qpos[m.jnt_qposadr[pitch.id]] = r, p
+        mujoco.mj_kinematics(m, d)
+        points = mesh_points(m, d, ["pelvis", "waist_yaw_link", "waist_roll_link", "torso_link"], "pelvis")
+        t_id, p_id = m.body("torso_link").id, m.body("pelvis").id  # the torso capsule in pelvis coordinates
+        rotation = d.xmat[p_id].reshape(3, 3).T @ d.xmat[t_id].reshape(3, 3)
+        origin = d.xmat[p_id].reshape(3, 3).T @ (d.xpos[t_id] - d.xpos[p_id])
+        torso_a, torso_b = (rotation @ np.array(x) + origin for x in (torso.a, torso.b))
+        outside_torso = _segment_distances(points, torso_a, torso_b) - torso.radius
+        outside_pelvis = _segment_distances(points, np.array(pelvis.a), np.array(pelvis.b)) - pelvis.radius
+        worst_union = max(worst_union, np.minimum(outside_torso, outside_pelvis).max())
+        worst_torso_only = max(worst_torso_only, outside_torso.max())
+    assert worst_union <= 0.0, f"a trunk vertex lies {1e3 * worst_union:.1f} mm outside both capsules"
+    assert worst_torso_only > 0.03, "the torso capsule alone was expected to leave the pelvis out"
+
+
+def test_pelvis_capsule_is_tight(spec: RobotSpec) -> None:
+    """The pelvis capsule holds every pelvis vertex with at most 2 mm to spare."""
+    m = mujoco.MjModel.from_xml_path(str(need_real_g1()))
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    cap = spec.static_capsules["pelvis"]
+    farthest = _segment_distances(mesh_points(m, d, ["pelvis"], "pelvis"), np.array(cap.a), np.array(cap.b)).max()
+    assert farthest <= cap.radius <= farthest + 0.002
+
+
+def test_static_capsules_are_fixed_and_placed_in_the_world(kin: RobotKinematics, spec: RobotSpec) -> None:
+    cap = spec.static_capsules["pelvis"]
+    ends = kin.static_endpoints["pelvis"]
+    np.testing.assert_allclose(ends, np.array([cap.a, cap.b]) + [0.0, 0.0, spec.base_height])
+    with pytest.raises(ValueError):
+        ends[0, 0] = 1.0  # read-only
+    moving = spec.model_copy(update={"static_capsules": {"hand": spec.capsules["left_forearm"]}})
+    with pytest.raises(KinematicsError, match="moves with joint 'left_elbow_joint'"):
+        RobotKinematics(moving)
+
+
+def test_home_static_pairs_have_clearance(kin: RobotKinematics, spec: RobotSpec) -> None:
+    ends = kin.compute(kin.q_home)[0]
+    for robot, static in spec.static_pairs:
+        i, (a, b) = CAPSULE_NAMES.index(robot), kin.static_endpoints[static]
+        clearance = segment_distance(ends[i, 0], ends[i, 1], a, b) - kin.radii[i] - spec.static_capsules[static].radius
+        assert clearance > 0.03, (robot, static, clearance)
+
+
 # --------------------------------------------------------------------------- the spec
 def test_default_spec_fields(spec: RobotSpec) -> None:
     assert default_robot_spec_path() == SPEC_PATH.resolve()
@@ -259,6 +322,10 @@ def test_model_path_resolved_against_yaml_folder(tmp_path: Path) -> None:
         (lambda r: r.update(limits={"left_elbow_joint": [0.0, 1.0]}), "outside limits"),
         (lambda r: r.update(base_height=-1.0), "base_height"),
         (lambda r: r.pop("model"), "model"),
+        (lambda r: r["static_capsules"].update(torso=r["static_capsules"]["pelvis"]), "may not reuse"),
+        (lambda r: r["static_pairs"].append(["left_forearm", "chest"]), "static capsule of"),
+        (lambda r: r["static_pairs"].append(["pelvis", "left_forearm"]), "robot capsule of"),
+        (lambda r: r["static_pairs"].append(["left_forearm", "pelvis"]), "twice"),
     ],
 )
 def test_invalid_specs_are_rejected_clearly(tmp_path: Path, mutate, message: str) -> None:

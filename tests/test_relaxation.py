@@ -12,6 +12,8 @@ from scipy.optimize import linprog
 
 from services.safety.assembly import build_pipeline
 from services.safety.barriers.joints import JointBarrier
+from services.safety.barriers.static import StaticCapsuleBarrier
+from services.safety.filter import RELAXED_TOL
 from shared.config import load_config
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
@@ -129,6 +131,32 @@ def test_an_already_violated_self_row_is_softened_not_dropped() -> None:
     result = p.filter.step(p.kinematics.q_home, DT)
     assert np.isfinite(result.u).all() and result.mode is SafetyMode.RELAXED
     assert (A[violated] @ result.u >= -1e-6).all()
+
+
+def test_an_already_violated_static_row_is_named_and_never_deepened() -> None:
+    """An arm inside the static pelvis capsule's margin (it must not happen; random states find
+    it) with the velocity box too small to leave it in one step: the step is RELAXED, names that
+    row in ``gave_way``, counts its h in ``min_h_self`` and never moves the arm deeper (A u ≥ 0)."""
+    p = pipeline_for()
+    p.barrier.set_external(None)
+    p.filter.params.u_max = np.full(8, 1e-3)  # rad/s: no retreat can cancel b = −γ h in one step
+    static = next(b for b in p.filter.barriers if isinstance(b, StaticCapsuleBarrier))
+    rng = np.random.default_rng(5)
+    checked = 0
+    while checked < 5:
+        q = rng.uniform(p.kinematics.q_min, p.kinematics.q_max)
+        blocks = p.filter.blocks_at(q)
+        block = blocks[-1]
+        if not -0.05 < block.h.min() < -0.002:
+            continue
+        p.filter.reset(q)
+        result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT)
+        violated = block.b > RELAXED_TOL
+        assert result.mode is SafetyMode.RELAXED and np.isfinite(result.u).all()
+        assert result.min_h_self == pytest.approx(min(block.h.min(), blocks[0].min_h(True)))
+        assert (block.A[violated] @ result.u >= -1e-6).all()
+        assert {static.row_names()[i] for i in np.flatnonzero(violated)} <= set(result.gave_way)
+        checked += 1
 
 
 def test_joint_barrier_rows_are_a_barrier_kind() -> None:

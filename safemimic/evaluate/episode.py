@@ -58,7 +58,8 @@ class Episode:
 
     The world: ``q_sim``/``dq_sim`` (N, 8) simulated joints after the step; ``qpos`` (N, nq) the
     whole MuJoCo pose; ``robot_capsules`` (N, 7, 2, 3) the CBF capsules at q_sim;
-    ``true_clearance``/``true_rate`` (N, M) per truth pair (:class:`TruthProbe`);
+    ``true_clearance``/``true_rate`` (N, M) per truth row (:attr:`TruthProbe.names`),
+    ``truth_is_self`` (M,) which of them are robot–robot rows;
     ``true_contact`` (N,) some robot surface penetrates the true person, ``true_depth`` (N,) m the
     deepest, ``robot_caused`` (N,) the robot closed some touching pair faster than
     :data:`CLOSING_SPEED`; ``contact_steps`` (N, 3) robot–robot, robot–perceived person and
@@ -91,7 +92,7 @@ class Episode:
     true_tally: ContactTally
     home_contacts: tuple[tuple[str, str], ...]
     pairs: PairSet
-    truth_pairs: PairSet
+    truth_is_self: np.ndarray
 
 
 def make_executor(conf: StackConfig, kinematics: RobotKinematics) -> MujocoExecutor:
@@ -111,7 +112,7 @@ def per_pair(values: np.ndarray, row_pair: np.ndarray, n_pairs: int, reduce: np.
 
 def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthProbe, nq: int,
                    home_contacts: tuple[tuple[str, str], ...], dt: float) -> Episode:
-    m, j, mt = len(safety.pairs), len(safety.kinematics.joint_names), len(truth.pairs)
+    m, j, mt = len(safety.pairs), len(safety.kinematics.joint_names), len(truth.names)
     return Episode(
         enforce=enforce, t=np.arange(n) * dt,
         q_nom=np.empty((n, j)), q_cbf=np.empty((n, j)), u=np.empty((n, j)), q_sim=np.empty((n, j)),
@@ -121,7 +122,7 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
         true_clearance=np.empty((n, mt)), true_rate=np.empty((n, mt)), true_contact=np.zeros(n, bool),
         true_depth=np.zeros(n), robot_caused=np.zeros(n, bool), contact_steps=np.zeros((n, 3), np.int64),
         tally=ContactTally(), true_tally=ContactTally(), home_contacts=home_contacts,
-        pairs=safety.pairs, truth_pairs=truth.pairs,
+        pairs=safety.pairs, truth_is_self=truth.is_self,
     )
 
 

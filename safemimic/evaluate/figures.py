@@ -99,7 +99,7 @@ def plot_barriers(cbf: Episode, nominal: Episode, phi: float, path: Path, title:
         unsafe, safe = _envelope(nominal, columns), _envelope(cbf, columns)
         ax.plot(nominal.t, unsafe, color=UNSAFE_COLOR, lw=1.6, ls="--", label="min h without CBF")
         ax.plot(cbf.t, safe, color=SAFE_COLOR, lw=2.0, label="min h with CBF")
-        true_columns = cbf.truth_pairs.is_self if kind == "self pairs" else ~cbf.truth_pairs.is_self
+        true_columns = cbf.truth_is_self if kind == "self pairs" else ~cbf.truth_is_self
         true_low = np.where(np.isnan(cbf.true_clearance[:, true_columns]), np.inf, cbf.true_clearance[:, true_columns])
         true_low = true_low.min(axis=1, initial=np.inf) - phi
         ax.plot(cbf.t, np.where(np.isfinite(true_low), true_low, np.nan), color=TRUE_COLOR, lw=1.2,

@@ -27,7 +27,8 @@ Those are the filter's own view (q_cbf against the perceived person: delayed, fi
 The world's view (:mod:`safemimic.evaluate.truth`: the simulated joints q_sim against the true
 person, every pair, every robot surface):
 
-- ``true_min_h_self``: the smallest self-pair barrier h = d − r_A − r_B − φ at q_sim (m);
+- ``true_min_h_self``: the smallest self-pair barrier h = d − r_A − r_B − φ at q_sim (m; the
+  robot description's self pairs and static pairs);
 - ``true_min_clearance_human``: the smallest robot–person capsule surface distance at q_sim
   (m, no φ; null: the person never had a capsule);
 - ``true_contacts_robot_human``: steps at which some robot surface (collision geoms and
@@ -95,7 +96,7 @@ def _nanmin(values: np.ndarray) -> float | None:
 
 def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
     """The ``true_*`` and contact-cause keys of one run (``phi``: the safety margin φ, m)."""
-    is_self = ep.truth_pairs.is_self
+    is_self = ep.truth_is_self
     human_clearance = ep.true_clearance[:, ~is_self]
     closing = np.nan_to_num(ep.true_rate[:, ~is_self], nan=0.0) < -CLOSING_SPEED
     near = np.nan_to_num(human_clearance, nan=np.inf) < phi

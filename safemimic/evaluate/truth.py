@@ -2,8 +2,8 @@
 
 :class:`TruthProbe` evaluates, at every control step, the robot's CBF capsules at the simulated
 joint angles q_sim against the *true* person's capsules, over *every* pair (the robot
-description's self pairs and all 7 × 7 robot–human pairs, whatever the safety configuration
-monitors):
+description's self pairs, all 7 × 7 robot–human pairs and its static pairs such as the arms
+against the pelvis, whatever the safety configuration monitors):
 
     clearance_i = d_i − (r_A + r_B)            (m, capsule surfaces, no margin φ)
     rate_i      = (∂d_i/∂q) q̇_sim = nᵀ J_pA q̇_sim   (m/s, the robot's own motion only: the
@@ -24,6 +24,7 @@ import numpy as np
 
 from services.safety.assembly import robot_radii
 from services.safety.barriers.capsules import CapsuleBarrier
+from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import PairSet, make_pair_set
 from shared.config import StackConfig
@@ -34,8 +35,8 @@ CLOSING_SPEED = 1e-3
 
 @dataclass(frozen=True)
 class StepTruth:
-    """One step: ``clearance`` and ``rate`` (m,) per pair of :attr:`TruthProbe.pairs` (NaN where
-    the person's capsule is missing), the robot capsules at q_sim ``robot`` (7, 2, 3) m."""
+    """One step: ``clearance`` and ``rate`` (M,) per truth row of :attr:`TruthProbe.names` (NaN
+    where the person's capsule is missing), the robot capsules at q_sim ``robot`` (7, 2, 3) m."""
 
     clearance: np.ndarray
     rate: np.ndarray
@@ -47,9 +48,17 @@ class TruthProbe:
 
     def __init__(self, conf: StackConfig, kinematics: RobotKinematics) -> None:
         self.kinematics = kinematics
+        spec, radii, n = kinematics.spec, robot_radii(conf, kinematics), len(kinematics.joint_names)
         #: Every self pair of the robot description, then every robot × person capsule pair.
-        self.pairs: PairSet = make_pair_set([tuple(p) for p in kinematics.spec.self_pairs], n_people=1)
-        self._barrier = CapsuleBarrier(self.pairs, robot_radii(conf, kinematics), len(kinematics.joint_names))
+        self.pairs: PairSet = make_pair_set([tuple(p) for p in spec.self_pairs], n_people=1)
+        self._barrier = CapsuleBarrier(self.pairs, radii, n)
+        #: Every static pair of the robot description (the arms against the pelvis).
+        self._static = StaticCapsuleBarrier([tuple(p) for p in spec.static_pairs], radii, kinematics.static_endpoints,
+                                            {name: c.radius for name, c in spec.static_capsules.items()}, n)
+        #: (M,) the name of each truth row: :attr:`pairs`, then the static pairs.
+        self.names: tuple[str, ...] = self.pairs.names + self._static.row_names()
+        #: (M,) bool: the row is a robot–robot (self or static) pair.
+        self.is_self: np.ndarray = np.concatenate([self.pairs.is_self, np.ones(len(self._static.row_names()), bool)])
 
     def measure(self, q_sim: np.ndarray, dq_sim: np.ndarray, capsules: np.ndarray, radii: np.ndarray,
                 valid: np.ndarray) -> StepTruth:
@@ -59,5 +68,6 @@ class TruthProbe:
         endpoints, jacobians = self.kinematics.compute(q_sim)
         robot = endpoints.copy()
         rows = self._barrier.evaluate(endpoints, jacobians, gamma=1.0, phi=0.0)
-        rate = np.where(rows.enabled, rows.A @ dq_sim, np.nan)
-        return StepTruth(clearance=rows.h.copy(), rate=rate, robot=robot)
+        static = self._static.constraint_rows(q_sim, endpoints, jacobians, gamma=1.0, phi=0.0, lookahead=0.0)
+        rate = np.concatenate([np.where(rows.enabled, rows.A @ dq_sim, np.nan), static.A @ dq_sim])
+        return StepTruth(clearance=np.concatenate([rows.h, static.h]), rate=rate, robot=robot)

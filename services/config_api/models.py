@@ -304,7 +304,7 @@ class StatusResponse(_View):
     config_version: int = Field(description="the API's current configuration version")
     backend: str | None
     dropped: dict[str, int]
-    relaxed_pairs: list[str] = Field(default_factory=list, description="robot–person pairs that gave way (mode relaxed)")
+    relaxed_pairs: list[str] = Field(default_factory=list, description="rows that gave way (mode relaxed): robot–person pairs, or an already violated hard row")
     person_intrusion: bool | None = Field(default=None, description="a person capsule inside the margin while the robot retreats")
 
     @classmethod

@@ -10,11 +10,12 @@ from services.safety.barriers.capsules import CapsuleBarrier
 from services.safety.filter import FilterParams, SafetyFilter
 from services.safety.barriers.pairs import CollisionGeometry
 from services.safety.barriers.spheres import SphereBarrier, nominal_human
+from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.human_memory import external_capsules
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import N_ROBOT, PairSet, preset_pair_set, select_groups
 from services.safety.retarget import Retargeter
-from shared.config import GeometryName, StackConfig
+from shared.config import GeometryName, PairGroup, StackConfig
 from shared.messages import HumanState
 from shared.robot_spec import RobotSpec, configured_robot_spec
 
@@ -84,6 +85,18 @@ def make_geometry(conf: StackConfig, pairs: PairSet, kinematics: RobotKinematics
     return CapsuleBarrier(pairs, radii, n)
 
 
+def make_static_barrier(conf: StackConfig, kinematics: RobotKinematics) -> StaticCapsuleBarrier:
+    """The robot description's static capsule rows (the arms against the pelvis), with the
+    configured robot radii. Static capsules are part of the trunk: the ``self_torso`` pair group
+    switches them with the torso's pairs."""
+    spec = kinematics.spec
+    enabled = PairGroup.SELF_TORSO in conf.safety.enabled_pair_groups
+    pairs = [tuple(p) for p in spec.static_pairs] if enabled else []
+    radii = {name: cap.radius for name, cap in spec.static_capsules.items()}
+    return StaticCapsuleBarrier(pairs, robot_radii(conf, kinematics), kinematics.static_endpoints, radii,
+                                len(kinematics.joint_names))
+
+
 def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics: RobotKinematics | None = None) -> SafetyPipeline:
     """Assemble the safety pipeline for ``conf`` (optionally another pair preset / shared kinematics)."""
     spec = configured_robot_spec(conf) if kinematics is None else kinematics.spec
@@ -92,5 +105,6 @@ def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics
     pairs = preset_pair_set(pair_preset or conf.safety.pairs, [tuple(p) for p in spec.self_pairs])
     pairs = select_groups(pairs, {group.value for group in conf.safety.enabled_pair_groups})
     barrier = make_geometry(conf, pairs, kinematics)
-    safety_filter = SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), conf.safety.backend.value)
+    safety_filter = SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), conf.safety.backend.value,
+                                 extra=[make_static_barrier(conf, kinematics)])
     return SafetyPipeline(spec, kinematics, pairs, barrier, safety_filter, make_retargeter(conf, spec, kinematics))

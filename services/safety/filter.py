@@ -5,8 +5,8 @@
     q_cbf⁺ = q_cbf + Δt u*
 
 A and b stack the rows of every barrier the filter holds (:mod:`services.safety.barriers`: the
-pair barrier of the configured geometry, the robot description's joint barriers, any other),
-each row hard or soft. u_lo/u_hi are the velocity bounds intersected with the joint limits
+pair barrier of the configured geometry, the robot description's joint barriers, any other such
+as the static capsules of :mod:`~services.safety.barriers.static`), each row hard or soft. u_lo/u_hi are the velocity bounds intersected with the joint limits
 reachable in one step; u* is clipped to them whatever the solver returns, so
 |q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly.
 
@@ -42,6 +42,7 @@ evaluator's no-CBF run).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +72,13 @@ def movable_rows(A: np.ndarray) -> np.ndarray:
     """(m,) bool: the rows of A (m, n) some velocity can change; the others (a pair of a static link
     such as a locked thigh, a disabled row) hold or fail whatever u is and stay out of the QP."""
     return np.abs(A).max(axis=1, initial=0.0) > _STATIC_ROW
+
+
+def min_h_self(blocks: Sequence[RowBlock]) -> float | None:
+    """The smallest h (m) over the enabled self-collision rows of the distance barriers among
+    ``blocks`` (pair and static capsule rows; joint barriers are angles and left out); None: none."""
+    values = [h for block in blocks if isinstance(block, BarrierRows) and (h := block.min_h(True)) is not None]
+    return min(values, default=None)
 
 
 @dataclass
@@ -105,7 +113,9 @@ class StepResult:
     """Outcome of one step: the new q_cbf (n,), u* (n,), mode, the pair barrier's rows and solver
     facts; ``relaxed`` (m,) the pair rows that gave way (their slack > 0; all False unless RELAXED);
     ``intrusion``: a person capsule is inside the margin (h < 0 on a soft pair row) while the
-    robot retreats from or holds against it (A_i u* ≥ 0)."""
+    robot retreats from or holds against it (A_i u* ≥ 0); ``gave_way`` the names of every row of
+    any barrier that gave way (:meth:`Barrier.row_names`, each once); ``min_h_self`` (m) the
+    smallest h over the self-collision distance rows of every barrier (pair and static; None: none)."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -117,21 +127,29 @@ class StepResult:
     qp_status: QPStatus
     relaxed: np.ndarray
     intrusion: bool = False
+    gave_way: tuple[str, ...] = ()
+    min_h_self: float | None = None
 
 
 class SafetyFilter:
     """Holds q_cbf and filters nominal targets through the CBF-QP of its barriers.
 
     ``barrier`` is the pair barrier (its rows are reported in :class:`StepResult`); the robot
-    description's joint barriers are added after it; ``barriers`` lists everything stacked.
+    description's joint barriers are added after it, then ``extra`` (e.g. the static capsules);
+    ``barriers`` lists everything stacked.
     """
 
-    def __init__(self, kinematics, barrier: CollisionGeometry, params: FilterParams, backend: str = "daqp") -> None:
+    def __init__(self, kinematics, barrier: CollisionGeometry, params: FilterParams, backend: str = "daqp",
+                 extra: Sequence[Barrier] = ()) -> None:
         self.kinematics = kinematics
         #: Whether the CBF rows constrain the QP (False: rows only monitored, u* = clip(u_ref)).
         self.enforce = True
         self.barrier = barrier
-        self.barriers: list[Barrier] = [barrier, JointBarrier(kinematics.spec.joint_barriers, kinematics.joint_names)]
+        self.barriers: list[Barrier] = [
+            barrier, JointBarrier(kinematics.spec.joint_barriers, kinematics.joint_names), *extra,
+        ]
+        #: The name of every stacked row, in stacking order (fixed for a pair set).
+        self.row_names: tuple[str, ...] = tuple(name for b in self.barriers for name in b.row_names())
         self.params = params
         self.backend_name = backend
         self._qp: QPBackend = make_backend(backend)
@@ -194,9 +212,10 @@ class SafetyFilter:
         qp_time = solution.solve_time_s
         u = solution.u
         relaxed = np.zeros(len(rows.b), bool)
+        gave_way: tuple[str, ...] = ()
         if u is not None:
             mode = SafetyMode.ACTIVE if solution.active_rows else SafetyMode.NOMINAL
-            if self.enforce and rows.min_h_all < -VIOLATION_TOL:
+            if self.enforce and min(b.min_h_all for b in blocks if isinstance(b, BarrierRows)) < -VIOLATION_TOL:
                 mode = SafetyMode.RELAXED
             active = solution.active_rows
         else:
@@ -205,9 +224,10 @@ class SafetyFilter:
             if u is not None:
                 mode = SafetyMode.RELAXED
                 active = int(np.count_nonzero(A @ u - b <= 1e-6))
-                gave_way = np.zeros(sum(len(block.b) for block in blocks), bool)
-                gave_way[kept] = slack > RELAXED_TOL
-                relaxed = gave_way[: len(rows.b)]
+                gave = np.zeros(len(self.row_names), bool)
+                gave[kept] = slack > RELAXED_TOL
+                relaxed = gave[: len(rows.b)]
+                gave_way = tuple(dict.fromkeys(self.row_names[i] for i in np.flatnonzero(gave)))
             else:
                 u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
         # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within the limits
@@ -222,6 +242,7 @@ class SafetyFilter:
         return StepResult(
             q_cbf=self.q_cbf.copy(), u=u, u_ref=u_ref, mode=mode, rows=rows, active_rows=active,
             qp_time_s=qp_time, qp_status=solution.status, relaxed=relaxed, intrusion=intrusion,
+            gave_way=gave_way, min_h_self=min_h_self(blocks),
         )
 
     def _relax(self, problem: QPProblem, soft: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, float]:

@@ -176,6 +176,8 @@ class RobotKinematics:
         radii.flags.writeable = False
         self._radii = radii
 
+        self._static_endpoints = self._place_static_capsules(model, spec)
+
         index = {c: i for i, c in enumerate(CAPSULE_NAMES)}
         pairs = np.array([(index[a], index[b]) for a, b in spec.self_pairs], dtype=np.intp).reshape(-1, 2)
         pairs.flags.writeable = False
@@ -270,7 +272,33 @@ class RobotKinematics:
                 return False
         return True
 
+    def _place_static_capsules(self, model: pin.Model, spec: RobotSpec) -> dict[str, np.ndarray]:
+        """World endpoints (2, 3) of each of ``spec.static_capsules``: its frame must be on a link no
+        imitation joint moves (the base or a locked link beside it), so one placement holds forever."""
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, pin.neutral(model))
+        placed: dict[str, np.ndarray] = {}
+        for name, cap in spec.static_capsules.items():
+            if not model.existFrame(cap.frame):
+                raise KinematicsError(f"static capsule {name!r}: frame {cap.frame!r} missing from {spec.model_path.name}")
+            frame = model.frames[model.getFrameId(cap.frame)]
+            if frame.parentJoint != 0:
+                raise KinematicsError(
+                    f"static capsule {name!r}: frame {cap.frame!r} moves with joint "
+                    f"{model.names[frame.parentJoint]!r}; a static capsule must sit on a link no imitation joint moves"
+                )
+            oMf = data.oMf[model.getFrameId(cap.frame)]
+            endpoints = np.array([oMf.act(np.asarray(p, dtype=np.float64)) for p in (cap.a, cap.b)])
+            endpoints.flags.writeable = False
+            placed[name] = endpoints
+        return placed
+
     # ------------------------------------------------------------------ properties
+    @property
+    def static_endpoints(self) -> dict[str, np.ndarray]:
+        """Static capsule name → its endpoints (2, 3) m in the world frame (read-only; fixed)."""
+        return dict(self._static_endpoints)
+
     @property
     def spec(self) -> RobotSpec:
         return self._spec

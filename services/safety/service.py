@@ -279,9 +279,7 @@ class SafetyService(ScheduledService):
         self._last_step_s = time.perf_counter() - started
         self._step_times[self.ticks % _STEP_TIME_WINDOW] = self._last_step_s
         self.ticks += 1
-        if result.relaxed.any():
-            names = pipeline.pairs.names
-            self._relaxed_since_status.update(names[i] for i in np.unique(pipeline.barrier.row_pair[result.relaxed]))
+        self._relaxed_since_status.update(result.gave_way)
         self._intrusion_since_status |= result.intrusion
         if now >= self._next_status:
             self._publish_status(now, result, mode)
@@ -378,7 +376,7 @@ class SafetyService(ScheduledService):
             SafetyStatus(
                 stamp=now,
                 mode=mode,
-                min_h_self=_finite_or_none(rows.min_h(True)),
+                min_h_self=_finite_or_none(result.min_h_self),
                 min_h_human=_finite_or_none(rows.min_h(False)),
                 active_constraints=int(result.active_rows),
                 total_constraints=int(np.count_nonzero(rows.enabled)),

@@ -49,3 +49,8 @@ class Barrier(ABC):
         """Rows at joint angles ``q`` (n,) rad whose forward kinematics gave the robot capsules'
         ``endpoints`` (7, 2, 3) m and ``jacobians`` (7, 2, 3, n); ``gamma`` (1/s) the CBF rate,
         ``phi`` (m) the distance margin, ``lookahead`` (s) the human velocity term's T."""
+
+    @abstractmethod
+    def row_names(self) -> tuple[str, ...]:
+        """One readable name per row, in row order (what ``SafetyStatus.relaxed_pairs`` reports when
+        that row gives way), e.g. ``left_forearm|human.torso`` or ``left_shoulder_roll_joint>=0.1``."""

@@ -30,8 +30,12 @@ class JointBarrier(Barrier):
         self.sign, self.bound = sign, bound
         self._A = sign[:, None] * np.eye(len(joint_names))[self.index]
         self._soft = np.zeros(len(self.index), bool)
+        self._names = tuple(f"{joint_names[j]}{'>=' if sgn > 0 else '<='}{bound:g}" for j, sgn, bound in rows)
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
                         lookahead: float) -> RowBlock:
         h = self.sign * (q[self.index] - self.bound)
         return RowBlock(A=self._A, b=-gamma * h, soft=self._soft, h=h)
+
+    def row_names(self) -> tuple[str, ...]:
+        return self._names

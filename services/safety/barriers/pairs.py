@@ -65,6 +65,38 @@ def swept_witness_points(segments: np.ndarray, radii: np.ndarray, first: np.ndar
     return np.stack([closest.p - radii[first, None] * normal, closest.q + radii[second, None] * normal], axis=1)
 
 
+def segment_rows(
+    segments: np.ndarray,
+    radii: np.ndarray,
+    jacobians: np.ndarray,
+    velocities: np.ndarray,
+    first: np.ndarray,
+    second: np.ndarray,
+    n_robot: int,
+    gamma: float,
+    phi: float,
+    lookahead: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rows (A (m, n), b (m,), h (m,), distance (m,)) of the sphere-swept segments ``segments``
+    (S, 2, 3) with ``radii`` (S,): closest points, h and normals
+    (:func:`~services.safety.barriers.kernel.pair_distances`), then A and b
+    (:func:`~services.safety.barriers.kernel.pair_rows`). The first ``n_robot`` segments are the
+    robot's, with endpoint Jacobians ``jacobians`` (n_robot, 2, 3, n); the others are external
+    (zero Jacobian), with endpoint ``velocities`` (S, 2, 3). Row i pairs segment ``first[i]``
+    (robot) with ``second[i]``. A zero-length segment is a sphere."""
+    m = len(first)
+    distance, h, s, t = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    normal = np.empty((m, 3))
+    need = pair_distances(segments, radii, first, second, phi, EPS_NORMAL, distance, h, s, t, normal)
+    if need:  # segments touching or crossing: the documented deterministic fallback normal
+        rows = np.flatnonzero(distance < EPS_NORMAL)
+        ea, eb = segments[first[rows]], segments[second[rows]]
+        normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
+    A, b = np.empty((m, jacobians.shape[3])), np.empty(m)
+    pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
+    return A, b, h, distance
+
+
 class CollisionGeometry(Barrier):
     """Colliders fitted to the robot and external capsules; the CBF rows of every monitored pair.
 
@@ -105,6 +137,10 @@ class CollisionGeometry(Barrier):
         """Per-row arrays that are the same every step (shared by every BarrierRows, never written)."""
         self._row_soft = ~self._row_is_self
         self._row_all_enabled = np.ones(len(self._row_capsule), bool)
+
+    def row_names(self) -> tuple[str, ...]:
+        """The monitored pair of each row (a pair of several collider rows repeats its name)."""
+        return tuple(self.pairs.names[i] for i in self.row_pair)
 
     @property
     def n_rows(self) -> int:
@@ -159,22 +195,8 @@ class CollisionGeometry(Barrier):
         phi: float,
         lookahead: float,
     ) -> BarrierRows:
-        """Rows of the sphere-swept segments ``segments`` (S, 2, 3) with ``radii`` (S,): closest
-        points, h and normals (:func:`~services.safety.barriers.kernel.pair_distances`), then
-        A and b (:func:`~services.safety.barriers.kernel.pair_rows`). The first ``n_robot``
-        segments are the robot's, with endpoint Jacobians ``jacobians`` (n_robot, 2, 3, n); the
-        others are external, with endpoint ``velocities`` (S, 2, 3). Row i pairs segment
-        ``first[i]`` (robot) with ``second[i]``. A zero-length segment is a sphere."""
-        m = len(first)
-        distance, h, s, t = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
-        normal = np.empty((m, 3))
-        need = pair_distances(segments, radii, first, second, phi, EPS_NORMAL, distance, h, s, t, normal)
-        if need:  # segments touching or crossing: the documented deterministic fallback normal
-            rows = np.flatnonzero(distance < EPS_NORMAL)
-            ea, eb = segments[first[rows]], segments[second[rows]]
-            normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
-        A, b = np.empty((m, self.n_joints)), np.empty(m)
-        pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
+        """:func:`segment_rows` packaged as this geometry's :class:`BarrierRows`."""
+        A, b, h, distance = segment_rows(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead)
         return self._rows(A, b, h, distance)
 
     def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray) -> BarrierRows:
