@@ -68,3 +68,19 @@ def make(cls: type[Message], **changes: Any) -> Message:
 def one_of_every_message() -> dict[str, Message]:
     """topic → a :func:`make` message of the topic's type, unpublished (seq 0, no source)."""
     return {topic: make(cls, seq=0, source="") for topic, cls in TOPICS.items()}
+
+
+def human_state() -> HumanState:
+    """A HumanState with every keypoint, angle and capsule valid (the codec benchmark's and the flood's)."""
+    rng = np.random.default_rng(0)
+    return HumanState(
+        stamp=1.0,
+        keypoints=rng.normal(size=(15, 3)),
+        keypoint_valid=np.ones(15, bool),
+        theta=rng.normal(size=8),
+        theta_valid=np.ones(8, bool),
+        capsules=rng.normal(size=(7, 2, 3)),
+        capsule_radii=np.full(7, 0.06),
+        capsule_valid=np.ones(7, bool),
+        capsule_velocities=rng.normal(size=(7, 2, 3)),
+    )

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-from bench.common import WAKE_MAX_MS, WAKE_P99_MAX_MS, wake_latency
-from bench.reliability import CheckResult
+from tests.reliability.check import CheckResult
+from tests.support.machine import WAKE_MAX_MS, WAKE_P99_MAX_MS, wake_latency
 
 
 def test_a_check_passes_only_when_it_behaved_and_met_every_budget() -> None:
