@@ -155,11 +155,12 @@ def _status(predicate: Callable[[dict], bool]) -> Callable[[dict], bool]:
 
 
 def test_edge_install_is_light(edge_venv: Path, tmp_path: Path) -> None:
-    """The perception extra brings no MuJoCo, Pinocchio, QP solver, numba or web server."""
+    """The perception extra brings no MuJoCo, Pinocchio, QP solver, numba or web server, and the
+    wheel holds neither the benchmarks nor the tests (they run from the checkout)."""
     check = subprocess.run(
         [str(edge_venv / "bin" / "python"), "-c",
          "import importlib.util as u, json; print(json.dumps([m for m in ('mujoco', 'pinocchio', 'osqp', 'daqp', "
-         "'numba', 'fastapi', 'uvicorn') if u.find_spec(m)]))"],
+         "'numba', 'fastapi', 'uvicorn', 'bench', 'tests') if u.find_spec(m)]))"],
         capture_output=True, text=True, cwd=tmp_path, timeout=60,
     )
     assert check.returncode == 0, check.stderr
