@@ -84,19 +84,11 @@ from shared.codec import (
     encode,
 )
 from shared.config import BusConfig, StackConfig, load_config
-from shared.messages import (
-    MESSAGE_TYPES,
-    ConfigUpdate,
-    HumanState,
-    JointCommand,
-    JointState,
-    Message,
-    SafetyMode,
-    SafetyStatus,
-)
+from shared.messages import MESSAGE_TYPES, ConfigUpdate, HumanState, Message
 from tests.reliability.check import CheckResult
 from tests.reliability.conftest import Check
 from tests.support.bus import BusRecorder, await_route
+from tests.support.messages import random_message
 
 #: Payload kinds that every decoder must refuse; ``wrong_frame`` applies to HumanState only and
 #: ``invalid_config`` (a well-formed ConfigUpdate whose configuration does not validate) to the
@@ -199,36 +191,8 @@ class Hostile:
 
     # valid -----------------------------------------------------------------------------------
     def message(self, cls: type[Message], stamp: float = 0.0, seq: int = 0, source: str = "") -> Message:
-        """A random valid message of ``cls`` (finite, in range; a ConfigUpdate carries a valid configuration)."""
-        r = self.rng
-        common: dict[str, Any] = {"stamp": stamp, "seq": seq, "source": source}
-        if cls is HumanState:
-            return HumanState(
-                **common, keypoints=r.normal([0.8, 0.0, 1.1], 0.4, (15, 3)), keypoint_valid=r.random(15) > 0.1,
-                theta=r.uniform(-math.pi, math.pi, 8), theta_valid=r.random(8) > 0.1,
-                capsules=r.normal([0.8, 0.0, 1.0], 0.4, (7, 2, 3)), capsule_radii=r.uniform(0.02, 0.2, 7),
-                capsule_valid=r.random(7) > 0.1,
-                capsule_velocities=r.normal(0.0, 0.5, (7, 2, 3)) if r.random() < 0.5 else None,
-                capture_stamp=stamp - 0.03 if r.random() < 0.5 else None,
-            )
-        if cls is JointState:
-            return JointState(**common, q=r.uniform(-0.5, 0.5, 8), dq=r.normal(0.0, 0.5, 8),
-                              q_command=r.uniform(-0.5, 0.5, 8) if r.random() < 0.5 else None,
-                              command_stale=bool(r.random() < 0.2))
-        if cls is JointCommand:
-            return JointCommand(**common, q=r.uniform(-0.5, 0.5, 8), dq=r.normal(0.0, 0.5, 8),
-                                mode=self.pick(list(SafetyMode)), human_stamp=stamp - 0.02, human_seq=int(r.integers(0, 2**40)))
-        if cls is SafetyStatus:
-            return SafetyStatus(
-                **common, mode=self.pick(list(SafetyMode)), min_h_self=float(r.normal(0.1, 0.1)),
-                min_h_human=float(r.normal(0.3, 0.3)) if r.random() < 0.7 else None,
-                active_constraints=int(r.integers(0, 72)), total_constraints=int(r.integers(0, 200)),
-                qp_solve_time_ms=float(r.uniform(0, 1)), step_time_ms=float(r.uniform(0, 2)),
-                dropped={"human/state": int(r.integers(0, 1000))}, config_version=int(r.integers(0, 2**31)),
-            )
-        if cls is ConfigUpdate:
-            return ConfigUpdate(**common, version=int(r.integers(1, 2**31)), changed=["safety.gamma"], config=self.valid_config())
-        raise TypeError(f"no factory for {cls.__name__}")
+        """A random valid message of ``cls`` (a ConfigUpdate carries :meth:`valid_config`)."""
+        return random_message(cls, self.rng, self.valid_config, stamp=stamp, seq=seq, source=source)
 
     def valid_config(self) -> dict[str, Any]:
         """The base configuration with parameters every service applies in place changed at random
