@@ -18,14 +18,15 @@ OnMessage = Callable[[str, float, Message], None]
 
 class BusRecorder:
     """Every message on ``topics`` that ``bus`` receives, with its local arrival time (monotonic s),
-    and with ``alive`` every liveliness change of a service token; thread-safe.
+    and with ``alive`` every liveliness change of a service token; thread-safe. ``robot_id``: the
+    robot whose topics to record (default: the bus's own).
 
     ``on_message`` sees each message as it is recorded (under the lock), for checks that follow the
     stream as it comes (e.g. a rate limit between consecutive commands).
     """
 
     def __init__(self, bus: Bus, topics: Iterable[str], *, alive: bool = False,
-                 on_message: OnMessage | None = None) -> None:
+                 on_message: OnMessage | None = None, robot_id: str | None = None) -> None:
         self.bus = bus
         self.lock = threading.Lock()
         self._on_message = on_message
@@ -34,7 +35,7 @@ class BusRecorder:
         self._alive: dict[str, bool] = {}
         self._alive_events: list[tuple[float, str, bool]] = []
         for topic in topics:
-            bus.subscribe(topic, self._recorder(topic))
+            bus.subscribe(topic, self._recorder(topic), robot_id=robot_id)
         if alive:
             bus.watch_alive(self._on_alive)
 
@@ -89,19 +90,43 @@ class BusRecorder:
             times = [start, *(a for a in self._arrivals[topic] if start < a < end), end]
         return max(b - a for a, b in zip(times, times[1:]))
 
-    def wait(self, topic: str, predicate: Callable[[Any], bool], timeout_s: float, since: float | None = None) -> Any:
-        """The first message on ``topic`` arrived after ``since`` (default: now) satisfying ``predicate``;
-        fails with the last one seen after ``timeout_s``."""
+    def wait_timed(self, topic: str, predicate: Callable[[Any], bool], timeout_s: float,
+                   since: float | None = None) -> tuple[float, Any]:
+        """(arrival time, message) of the first message on ``topic`` arrived at or after ``since``
+        (default: now) satisfying ``predicate``; fails with the last one seen after ``timeout_s``."""
         since = time.monotonic() if since is None else since
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            for message in self.between(topic, since):
-                if predicate(message):
-                    return message
-            time.sleep(0.01)
+            with self.lock:
+                found = next(((t, m) for t, m in self._timed[topic] if t >= since and predicate(m)), None)
+            if found is not None:
+                return found
+            time.sleep(0.005)
         raise AssertionError(f"no matching message on {topic} within {timeout_s} s; last: {self.last(topic)}")
 
+    def wait(self, topic: str, predicate: Callable[[Any], bool], timeout_s: float, since: float | None = None) -> Any:
+        """The message of :meth:`wait_timed`."""
+        return self.wait_timed(topic, predicate, timeout_s, since)[1]
+
     # liveliness ---------------------------------------------------------------------------------
+    def alive_tokens(self) -> set[str]:
+        """The service tokens up now."""
+        with self.lock:
+            return {token for token, up in self._alive.items() if up}
+
+    def wait_token(self, token: str, up: bool, timeout_s: float) -> float:
+        """When ``token`` was first seen up (or gone), waiting up to ``timeout_s``; fails with the changes seen."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self.lock:
+                at = next((when for when, name, state in self._alive_events if name == token and state == up), None)
+                events = list(self._alive_events)
+            if at is not None:
+                return at
+            if time.monotonic() > deadline:
+                raise AssertionError(f"token {token} up={up} not seen within {timeout_s} s: {events}")
+            time.sleep(0.005)
+
     def is_alive(self, token: str) -> bool:
         with self.lock:
             return bool(self._alive.get(token))
