@@ -104,6 +104,14 @@ class BusRecorder:
             time.sleep(0.005)
         raise AssertionError(f"no matching message on {topic} within {timeout_s} s; last: {self.last(topic)}")
 
+    def wait_count(self, topic: str, n: int, timeout_s: float) -> None:
+        """Wait until ``n`` messages on ``topic`` have arrived; fails after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while self.count(topic) < n:
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{self.count(topic)} of {n} messages on {topic} within {timeout_s} s")
+            time.sleep(0.005)
+
     def wait(self, topic: str, predicate: Callable[[Any], bool], timeout_s: float, since: float | None = None) -> Any:
         """The message of :meth:`wait_timed`."""
         return self.wait_timed(topic, predicate, timeout_s, since)[1]
