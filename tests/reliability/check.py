@@ -16,7 +16,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from tests.support.machine import machine
 
@@ -53,6 +53,13 @@ class CheckResult:
         missed = [name for name, met in self.budgets.items() if not met]
         verdict = "PASS" if self.passed else "FAIL" if not self.behaved else f"BUDGET MISSED ({', '.join(missed)})"
         return f"{verdict} {self.name}: {shown}"
+
+
+class Check(Protocol):
+    """The ``check`` fixture: report ``result`` and hold it (behaviour always; budgets in the long
+    run, and in the quick one where ``budgets`` is True)."""
+
+    def __call__(self, result: CheckResult, *, budgets: bool = True) -> None: ...
 
 
 def write_report(results: list[CheckResult], path: Path, *, long: bool, duration_s: float, all_tests_passed: bool) -> None:

@@ -5,20 +5,16 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
 
 import pytest
 
-from tests.reliability.check import CheckResult, write_report
+from tests.reliability.check import Check, CheckResult, write_report
 
 #: The results reported so far in this session, in the order the checks ran.
 RESULTS = pytest.StashKey[list[CheckResult]]()
 STARTED = pytest.StashKey[float]()
 #: ``SAFEMIMIC_RELIABILITY=long`` selects the long variant like ``--reliability-long``.
 LONG_ENV = "SAFEMIMIC_RELIABILITY"
-
-#: ``check(result, budgets=...)``: report ``result`` and hold it (see :func:`check`).
-Check = Callable[..., None]
 
 
 def is_long(config: pytest.Config) -> bool:
@@ -27,7 +23,8 @@ def is_long(config: pytest.Config) -> bool:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """(Historic: called for this conftest too when collection loads it after the session started.)"""
+    """A fresh result list and the start time (pytest calls this hook for a conftest loaded only at
+    collection too, e.g. under ``make test``'s ``pytest`` from the top)."""
     config.stash[RESULTS] = []
     config.stash[STARTED] = time.monotonic()
 

@@ -61,8 +61,7 @@ from services.config_api.token import TOKEN_ENV
 from shared.bus import Bus
 from shared.config import BusMode, StackConfig, TlsConfig, load_config
 from shared.messages import JointCommand, Message
-from tests.reliability.check import CheckResult
-from tests.reliability.conftest import Check
+from tests.reliability.check import Check, CheckResult
 from tests.support.bus import BusRecorder
 
 #: A restarted service must be back (token and data) this long after its restart command (s).

@@ -85,8 +85,7 @@ from shared.codec import (
 )
 from shared.config import BusConfig, StackConfig, load_config
 from shared.messages import MESSAGE_TYPES, ConfigUpdate, HumanState, Message
-from tests.reliability.check import CheckResult
-from tests.reliability.conftest import Check
+from tests.reliability.check import Check, CheckResult
 from tests.support.bus import BusRecorder, await_route
 from tests.support.messages import random_message
 

@@ -54,8 +54,7 @@ import pytest
 from safemimic.launch import Child, free_port, launch, stop_all
 from shared.bus import Bus
 from shared.config import BusConfig
-from tests.reliability.check import CheckResult
-from tests.reliability.conftest import Check
+from tests.reliability.check import Check, CheckResult
 from tests.support.bus import BusRecorder
 from tests.support.machine import wake_latency
 from tests.support.messages import human_state

@@ -43,8 +43,7 @@ from services.safety.service import SafetyService
 from shared.bus import Bus, router_config
 from shared.config import StackConfig, TlsConfig, load_config
 from shared.messages import ConfigUpdate, JointCommand
-from tests.reliability.check import CheckResult
-from tests.reliability.conftest import Check
+from tests.reliability.check import Check, CheckResult
 from tests.support.bus import BusRecorder
 
 STARTUP_TIMEOUT_S = 60.0
