@@ -144,9 +144,10 @@ class BusService:
 
 
 class ScheduledService(BusService):
-    """A bus service whose loop runs on ``self.schedule``."""
+    """A bus service whose loop runs on ``self.schedule`` and counts its ticks in ``self.ticks``."""
 
     schedule: FixedRateSchedule
+    ticks: int
 
     @property
     def deadline_misses(self) -> int:
@@ -158,3 +159,9 @@ class ScheduledService(BusService):
     def max_late_s(self) -> float:
         """The latest a tick has started (s)."""
         return self.schedule.max_late_s
+
+    def rate_counters(self, elapsed_s: float | None) -> dict[str, float]:
+        """``elapsed_s`` (s) and the tick rate achieved over it (Hz); empty without an elapsed time."""
+        if elapsed_s is None:
+            return {}
+        return {"elapsed_s": elapsed_s, "achieved_hz": self.ticks / elapsed_s if elapsed_s > 0 else 0.0}

@@ -1,7 +1,7 @@
 """The loop runtime every service shares (shared.service): a step that raises is counted, logged
 once per streak (and the first ten), skipped; a streak as long as the limit is a bug and raises.
 Step times keep the last and a window; refusals add the service's own to the bus's; a pending item
-is the newest put, taken once."""
+is the newest put, taken once; the achieved rate is the ticks over the elapsed time."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 
 from shared.bus import Bus
 from shared.config import BusConfig
-from shared.service import Pending, Refusals, StepErrors, StepTimes
+from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes
 from tests.support.bus import await_route
 from tests.support.processes import free_port
 
@@ -65,6 +65,14 @@ def test_step_times_keep_the_last_and_a_window_of_the_most_recent() -> None:
         times.record(seconds)
     assert times.last_s == 0.4
     assert sorted(times.recent()) == [0.2, 0.3, 0.4]  # the oldest overwritten
+
+
+def test_rate_counters_are_the_ticks_over_the_elapsed_time() -> None:
+    service = ScheduledService()
+    service.ticks = 250
+    assert service.rate_counters(None) == {}
+    assert service.rate_counters(0.5) == {"elapsed_s": 0.5, "achieved_hz": 500.0}
+    assert service.rate_counters(0.0)["achieved_hz"] == 0.0
 
 
 def test_pending_holds_the_newest_item_until_taken_once() -> None:

@@ -238,9 +238,7 @@ class ExecutorService(ScheduledService):
         }
         if isinstance(self.executor, ReportsCounters):
             out["robot"] = self.executor.counters()
-        if elapsed_s is not None:
-            out["elapsed_s"] = elapsed_s
-            out["achieved_hz"] = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
+        out.update(self.rate_counters(elapsed_s))
         return out
 
 

@@ -475,9 +475,7 @@ class SafetyService(ScheduledService):
             "dropped": self.dropped(),
             "backend": self.pipeline.filter.backend_name,
         }
-        if elapsed_s is not None:
-            out["elapsed_s"] = elapsed_s
-            out["achieved_hz"] = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
+        out.update(self.rate_counters(elapsed_s))
         return out
 
 
