@@ -35,7 +35,8 @@ def _top_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="safemimic",
         description="Safe human-to-humanoid motion imitation: perception → CBF-QP safety layer → robot, over Zenoh.",
-        epilog="Run 'safemimic COMMAND --help' for the options of a command.",
+        epilog="Run 'safemimic COMMAND --help' for the options of a command. The benchmarks and the reliability "
+               "checks run from a checkout of the repository, not from the package: make bench, make reliability.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"safemimic {VERSION}")
