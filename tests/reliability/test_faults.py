@@ -567,7 +567,9 @@ def config_write_kill(kills: int) -> CheckResult:
 
 @pytest.fixture(scope="module")
 def stack_results(long_run: bool) -> dict[str, CheckResult]:
-    """One stack run for its checks, by name: one kill of each service and of the router (long: two)."""
+    """One stack run for its checks, by name: one kill of each service and of the router (long: two).
+    A stack that does not come up (:class:`StackStartError`, with the end of every log) errors each
+    of its tests."""
     return {result.name: result for result in stack_checks(load_config(), 2 if long_run else 1)}
 
 
