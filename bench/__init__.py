@@ -1,1 +1,1 @@
-"""Benchmarks (``make bench`` / ``safemimic bench``): each writes JSON under bench/results/."""
+"""Benchmarks (``make bench`` / ``python -m bench.run`` in the checkout, not installed): each writes JSON under bench/results/."""

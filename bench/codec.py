@@ -4,28 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 from bench.common import percentiles_us, time_calls
 from shared.codec import decode, encode
 from shared.messages import HumanState
+from tests.support.messages import human_state
 
 BUDGET_P50_US = 50.0
-
-
-def human_state() -> HumanState:
-    rng = np.random.default_rng(0)
-    return HumanState(
-        stamp=1.0,
-        keypoints=rng.normal(size=(15, 3)),
-        keypoint_valid=np.ones(15, bool),
-        theta=rng.normal(size=8),
-        theta_valid=np.ones(8, bool),
-        capsules=rng.normal(size=(7, 2, 3)),
-        capsule_radii=np.full(7, 0.06),
-        capsule_valid=np.ones(7, bool),
-        capsule_velocities=rng.normal(size=(7, 2, 3)),
-    )
 
 
 def run(repeats: int = 20000) -> dict[str, Any]:

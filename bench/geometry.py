@@ -40,7 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from bench.common import RESULTS_DIR, machine
+from bench.common import RESULTS_DIR
+from tests.support.machine import machine
 from bench.safety_step import DT, WARMUP, FilterRunner, make_filter, interleave, q_nom_trajectory, summarize
 from safemimic.evaluate.person import HumanTrack, perceive
 from safemimic.evaluate.source import open_input
@@ -324,4 +325,4 @@ if __name__ == "__main__":
         level = int(sys.argv[3])
         print(json.dumps(probe_setup(sys.argv[2], None if level < 0 else level)))
     else:
-        raise SystemExit("usage: safemimic bench geometry (or python -m bench.geometry --probe GEOMETRY K)")
+        raise SystemExit("usage: python -m bench.run geometry (or python -m bench.geometry --probe GEOMETRY K)")

@@ -10,7 +10,7 @@ from typing import Any
 
 _PREAMBLE = """# Benchmarks
 
-Written by `make bench` (`safemimic bench --docs docs/benchmarks.md`, `bench/report.py`) from the
+Written by `make bench` (`python -m bench.run --docs docs/benchmarks.md`, `bench/report.py`) from the
 JSON of one run (`bench/results/*.json`, not committed). Every number below was measured in that
 run on the machine named here, except figures marked **external** (their source is named). The
 machine is shared with other jobs: compare the ratios within this run, not absolute times across
@@ -73,7 +73,7 @@ def safety_section(r: dict[str, Any]) -> list[str]:
     ext = r["oscbf_external"]
     s400, s126 = r["sized"]["400"], r["sized"]["126"]
     return [
-        "## Safety step (`safemimic bench safety_step`)",
+        "## Safety step (`python -m bench.run safety_step`)",
         "",
         f"{r['what']}; {r['timing']}; load average during the timed blocks "
         f"{load.get('before', [0])[0]:.2f} → {load.get('after', [0])[0]:.2f} (1 min).",

@@ -1,4 +1,4 @@
-"""``safemimic bench`` / ``make bench``: run benchmarks, print a table, write JSON per benchmark."""
+"""``make bench`` / ``python -m bench.run`` (from the checkout): run benchmarks, print a table, write JSON per benchmark."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import json
 import time
 from pathlib import Path
 
-from bench.common import RESULTS_DIR, machine, write_result
+from bench.common import RESULTS_DIR, write_result
+from tests.support.machine import machine
 from bench.report import render, verdicts
 
 #: benchmark name → module with ``run(**kwargs) -> dict`` (later issues add safety_step, latency, ...).
@@ -23,7 +24,7 @@ BENCHMARKS: dict[str, str] = {
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
-    parser = parser or argparse.ArgumentParser(prog="safemimic bench")
+    parser = parser or argparse.ArgumentParser(prog="python -m bench.run")
     parser.description = "Run benchmarks; each writes OUT/<name>.json with name, p50, p99, unit and the machine."
     parser.add_argument("names", nargs="*", choices=[[], *BENCHMARKS], metavar="NAME", help=f"benchmarks to run (default: all of {', '.join(BENCHMARKS)})")
     parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="result folder (default: bench/results)")

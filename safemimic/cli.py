@@ -24,8 +24,6 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "config-api": ("services.config_api.main", "serve the config API and web console: validated, persisted, published parameter changes"),
     "executor": ("services.executor.service", "run the robot executor: MuJoCo simulation (or hardware) following JointCommand, publishing JointState"),
     "evaluate": ("safemimic.evaluate.main", "offline evaluation against the true person (camera latency, noise): with and without the CBF layer in MuJoCo → metrics.json + figures; --suite for a folder"),
-    "bench": ("bench.run", "run the benchmarks, print a table and write JSON under bench/results/"),
-    "reliability": ("bench.reliability.run", "run the reliability checks (watchdogs, rate limits, faults, fuzz, load) → bench/results/reliability.json"),
     "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),
     "viewer": ("services.viewer.service", "live 3D view in Rerun of robot, person and barriers (subscribes only; web viewer, --save FILE.rrd)"),
     "health": ("safemimic.health", "which services are alive on the bus (liveliness tokens); exit 0 if the named ones are"),
@@ -37,7 +35,8 @@ def _top_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="safemimic",
         description="Safe human-to-humanoid motion imitation: perception → CBF-QP safety layer → robot, over Zenoh.",
-        epilog="Run 'safemimic COMMAND --help' for the options of a command.",
+        epilog="Run 'safemimic COMMAND --help' for the options of a command. The benchmarks and the reliability "
+               "checks run from a checkout of the repository, not from the package: make bench, make reliability.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"safemimic {VERSION}")

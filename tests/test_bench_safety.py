@@ -1,5 +1,5 @@
 """The safety-step benchmark's code paths (a short run; no timing is asserted), its report, the
-budget check of ``safemimic bench``, and DAQP's warm start (the flags as DAQP defines them)."""
+budget check of ``make bench``, and DAQP's warm start (the flags as DAQP defines them)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bench import safety_step
-from bench.common import machine
+from tests.support.machine import machine
 from bench.report import render, verdicts
 from services.safety.qp import QPProblem
 from services.safety.qp.daqp_backend import DAQP_ACTIVE, DAQP_LOWER, DaqpBackend, warm_sense

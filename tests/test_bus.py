@@ -12,6 +12,7 @@ from shared.bus import TOPICS, Bus, topic_key
 from shared.codec import encode
 from shared.config import BusConfig
 from shared.messages import JointState, Message
+from tests.support.bus import BusRecorder
 from tests.support.messages import one_of_every_message
 from tests.support.processes import free_port
 
@@ -24,70 +25,41 @@ def content(message: Message) -> dict:
     return dumped
 
 
-class AliveWatcher:
-    def __init__(self) -> None:
-        self.events: list[tuple[str, bool, float]] = []
-        self.changed = threading.Condition()
-
-    def __call__(self, service: str, alive: bool) -> None:
-        with self.changed:
-            self.events.append((service, alive, time.monotonic()))
-            self.changed.notify_all()
-
-    def wait(self, service: str, alive: bool, timeout: float) -> float:
-        with self.changed:
-            ok = self.changed.wait_for(lambda: any(e[:2] == (service, alive) for e in self.events), timeout)
-        assert ok, f"token {service} alive={alive} not seen within {timeout}s: {self.events}"
-        return next(e[2] for e in self.events if e[:2] == (service, alive))
-
-
 def exchange_every_message(spawn, test_bus: BusConfig, node_flags: list[str]) -> None:
-    received: dict[str, Message] = {}
-    got = threading.Condition()
-
-    def keep(topic: str):
-        def on_message(message: Message) -> None:
-            with got:
-                received[topic] = message
-                got.notify_all()
-
-        return on_message
-
-    watcher = AliveWatcher()
     with Bus(test_bus, "ping", "test") as bus:
-        for topic in TOPICS:
-            bus.subscribe(topic, keep(topic), robot_id="pong")
-        bus.watch_alive(watcher)
+        echoes = BusRecorder(bus, TOPICS, alive=True, robot_id="pong")
         node = spawn("tests/bus_node.py", *node_flags)
         node.wait_json("ready")
-        watcher.wait("bus_node", True, timeout=10)
+        echoes.wait_token("bus_node", True, timeout_s=10)
         publishers = {topic: bus.publisher(topic) for topic in TOPICS}
         sent = one_of_every_message()
+
+        def received() -> set[str]:
+            return {topic for topic in TOPICS if echoes.count(topic)}
+
         deadline = time.monotonic() + 10
-        while len(received) < len(TOPICS) and time.monotonic() < deadline:
+        while len(received()) < len(TOPICS) and time.monotonic() < deadline:
             for topic, message in sent.items():  # resend: the node's subscriptions may still propagate
-                if topic not in received:
+                if topic not in received():
                     publishers[topic].put(message.model_copy())
-            with got:
-                got.wait(0.2)
-        assert set(received) == set(TOPICS), f"echoed back: {sorted(received)}"
+            time.sleep(0.2)
+        assert received() == set(TOPICS), f"echoed back: {sorted(received())}"
         for topic, message in sent.items():
-            assert content(received[topic]) == content(message), topic
-            assert type(received[topic]) is TOPICS[topic]
+            assert content(echoes.last(topic)) == content(message), topic
+            assert type(echoes.last(topic)) is TOPICS[topic]
 
         # A malformed payload is counted by the receiving process and dropped; the node keeps working.
         bus.put_raw("human/state", b"\x93garbage that is not a message")
         bus.put_raw("robot/command", sent["human/state"].model_dump_json().encode())
         assert node.wait_json("dropped")["counts"].get("human/state", 0) >= 1
-        received.clear()
+        resent = time.monotonic()
         publishers["robot/joint_state"].put(sent["robot/joint_state"].model_copy())
-        with got:
-            assert got.wait_for(lambda: "robot/joint_state" in received, 5)
+        echoes.wait("robot/joint_state", lambda message: True, timeout_s=5, since=resent)
 
         # The liveliness token of a killed process disappears within 1 s.
         node.popen.kill()
         killed = time.monotonic()
-        gone = watcher.wait("bus_node", False, timeout=3)
+        gone = echoes.wait_token("bus_node", False, timeout_s=3)
         assert gone - killed <= 1.0, f"token vanished after {gone - killed:.2f}s"
 
 

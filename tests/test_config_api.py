@@ -3,7 +3,7 @@
 Each endpoint; 401 without the token; 422 naming the field with the store file unchanged; an
 accepted change reaches a Zenoh subscriber with the next version and is acknowledged by a
 SafetyStatus; a restart keeps it; the token file; the body limit; reads from a non-loopback
-address. The helpers here (:class:`ApiServer`, :class:`FakeSafety`, :class:`Updates`) are
+address. The helpers here (:class:`ApiServer`, :class:`FakeSafety`) are
 reused by the other ``test_config_api_*`` modules.
 """
 
@@ -25,10 +25,13 @@ import pytest
 from shared.bus import Bus
 from shared.config import BusConfig, load_config
 from shared.messages import ConfigUpdate, HumanState, SafetyMode, SafetyStatus
+from tests.support.bus import BusRecorder
 from tests.support.processes import Proc, free_port
 
 pytestmark = pytest.mark.integration
 
+#: How long a test waits for a ConfigUpdate on the bus (s).
+UPDATE_TIMEOUT_S = 5.0
 TOKEN = "test-token-for-the-config-api-0123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 #: Short acknowledgement timeout of the API under test (s): tests without a safety service wait this long.
@@ -73,26 +76,6 @@ class ApiServer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-class Updates:
-    """Collects the ConfigUpdates a Zenoh subscriber in this process receives."""
-
-    def __init__(self, bus: Bus) -> None:
-        self.received: list[ConfigUpdate] = []
-        self._cond = threading.Condition()
-        bus.subscribe("config", self._on)
-
-    def _on(self, update: ConfigUpdate) -> None:
-        with self._cond:
-            self.received.append(update)
-            self._cond.notify_all()
-
-    def wait(self, predicate: Callable[[ConfigUpdate], bool], timeout: float = 5.0) -> ConfigUpdate:
-        with self._cond:
-            ok = self._cond.wait_for(lambda: any(predicate(u) for u in self.received), timeout)
-            assert ok, f"no matching ConfigUpdate within {timeout} s; got {[(u.version, u.changed) for u in self.received]}"
-            return next(u for u in self.received if predicate(u))
 
 
 class FakeSafety:
@@ -304,7 +287,7 @@ def test_oversized_body_is_413(api: ApiServer) -> None:
 
 
 def test_change_is_persisted_published_and_acknowledged(api: ApiServer, bus: Bus) -> None:
-    updates = Updates(bus)
+    updates = BusRecorder(bus, ("config",))
     version = api.http.get("/api/config").json()["version"]
     with FakeSafety(bus):
         response = api.http.patch(
@@ -317,7 +300,7 @@ def test_change_is_persisted_published_and_acknowledged(api: ApiServer, bus: Bus
     assert result["applied"] is True and result["acknowledged_version"] >= version + 1
     assert sorted(result["changed"]) == ["safety.gain", "safety.gamma", "safety.rate_hz"]
 
-    update = updates.wait(lambda u: u.version == version + 1)
+    update = updates.wait("config", lambda u: u.version == version + 1, UPDATE_TIMEOUT_S, since=0.0)
     assert sorted(update.changed) == ["safety.gain", "safety.gamma", "safety.rate_hz"]
     assert update.config["safety"]["gamma"] == 4.5 and update.config["safety"]["gain"] == 6.0
     assert update.config["safety"]["rate_hz"] == pytest.approx(250.0)
@@ -341,7 +324,7 @@ def test_change_is_persisted_published_and_acknowledged(api: ApiServer, bus: Bus
 
 
 def test_unacknowledged_change_is_saved_and_reported(api: ApiServer, bus: Bus) -> None:
-    updates = Updates(bus)
+    updates = BusRecorder(bus, ("config",))
     version = api.http.get("/api/config").json()["version"]
     started = time.monotonic()
     response = api.http.patch("/api/config/safety", json={"phi": 0.045}, headers=AUTH)
@@ -350,7 +333,8 @@ def test_unacknowledged_change_is_saved_and_reported(api: ApiServer, bus: Bus) -
     assert response.status_code == 200 and result["applied"] is False
     assert result["version"] == version + 1 and "no safety service acknowledged" in result["detail"]
     assert ACK_TIMEOUT_S * 0.9 <= waited < ACK_TIMEOUT_S + 2.0
-    assert updates.wait(lambda u: u.version == version + 1).config["safety"]["phi"] == 0.045
+    update = updates.wait("config", lambda u: u.version == version + 1, UPDATE_TIMEOUT_S, since=0.0)
+    assert update.config["safety"]["phi"] == 0.045
     assert api.http.get("/api/config").json()["safety"]["phi"] == 0.045
 
 
@@ -407,7 +391,7 @@ def test_store_failure_is_503_and_nothing_applied(tmp_path: Path, zenoh_endpoint
     folder = tmp_path / "state"
     folder.mkdir()
     with ApiServer(folder / "config.json", zenoh_endpoint) as server:
-        updates = Updates(bus)
+        updates = BusRecorder(bus, ("config",))
         before = server.http.get("/api/config").json()
         folder.rmdir()
         folder.write_text("a file where the store's folder was")  # even root cannot write below a file
@@ -415,7 +399,7 @@ def test_store_failure_is_503_and_nothing_applied(tmp_path: Path, zenoh_endpoint
         assert response.status_code == 503 and "not applied" in response.json()["detail"]
         assert server.http.get("/api/config").json() == before
         time.sleep(0.3)
-        assert not [u for u in updates.received if u.config["safety"]["gamma"] == 7.5]
+        assert not [u for u in updates.between("config") if u.config["safety"]["gamma"] == 7.5]
 
 
 # --------------------------------------------------------------------------------------------
@@ -433,7 +417,7 @@ def test_calibrate_captures_theta_home_from_the_newest_human_state(api: ApiServe
     assert response.status_code == 409 and "invalid angles torso_roll" in response.json()["detail"]
 
     theta = [0.01, -0.02, 0.05, 0.1, 0.2, 0.04, -0.1, 0.25]
-    updates = Updates(bus)
+    updates = BusRecorder(bus, ("config",))
     publisher.put(human_state(theta))
     responses: list[httpx.Response] = []
     wait_until(lambda: responses.append(api.http.post("/api/calibrate", headers=AUTH)) or responses[-1].status_code == 200)
@@ -445,7 +429,8 @@ def test_calibrate_captures_theta_home_from_the_newest_human_state(api: ApiServe
     assert body["retarget"]["theta_home"] == pytest.approx(theta)
     entry = api.http.get("/api/config/history").json()["entries"][0]
     assert entry["action"] == "calibrate" and entry["diff"][0]["path"] == "retargeting.theta_home"
-    assert updates.wait(lambda u: "retargeting.theta_home" in u.changed).config["retargeting"]["theta_home"] == pytest.approx(theta)
+    calibrated = updates.wait("config", lambda u: "retargeting.theta_home" in u.changed, UPDATE_TIMEOUT_S, since=0.0)
+    assert calibrated.config["retargeting"]["theta_home"] == pytest.approx(theta)
 
     # the same pose again: nothing to change, same version; a stale pose is refused
     publisher.put(human_state(theta))
@@ -511,19 +496,19 @@ def test_restart_keeps_the_config_and_republishes_it(tmp_path: Path, zenoh_endpo
         first.http.patch("/api/config/safety", json={"gamma": 3.25}, headers=AUTH)
         result = first.http.patch("/api/config/retarget", json={"mirror": True}, headers=AUTH).json()
     assert result["version"] == 2
-    updates = Updates(bus)
+    updates = BusRecorder(bus, ("config",))
     with ApiServer(store, zenoh_endpoint) as second:
         assert second.ready["version"] == 2
         body = second.http.get("/api/config").json()
         assert body["version"] == 2 and body["safety"]["gamma"] == 3.25 and body["retarget"]["mirror"] is True
         assert [e["version"] for e in second.http.get("/api/config/history").json()["entries"]] == [2, 1]
-        assert updates.wait(lambda u: u.version == 2).config["safety"]["gamma"] == 3.25  # published at start
+        assert updates.wait("config", lambda u: u.version == 2, UPDATE_TIMEOUT_S, since=0.0).config["safety"]["gamma"] == 3.25  # published at start
         # a service that comes up gets the accepted configuration again
         time.sleep(0.3)
-        updates.received.clear()
+        declared = time.monotonic()
         token = bus.declare_alive("safety")
         try:
-            update = updates.wait(lambda u: u.version == 2 and u.changed == [])
+            update = updates.wait("config", lambda u: u.version == 2 and u.changed == [], UPDATE_TIMEOUT_S, since=declared)
         finally:
             token.undeclare()
         assert update.config["safety"]["gamma"] == 3.25

@@ -15,12 +15,12 @@ import pytest
 from shared.bus import Bus
 from shared.codec import encode
 from shared.config import BusConfig
-from shared.messages import HumanState, JointCommand, JointState
+from shared.messages import HumanState, JointCommand
 from shared.names import CAPSULE_NAMES
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
+from tests.support.bus import BusRecorder
 from tests.support.processes import free_port
 from tests.support.team import G1_MJCF
-from tests.test_bus import AliveWatcher
 
 pytestmark = pytest.mark.integration
 
@@ -28,33 +28,6 @@ SPEC = load_robot_spec(default_robot_spec_path())
 Q_HOME = np.array([SPEC.home.get(j, 0.0) for j in SPEC.imitation_joints])
 STEP = np.array([0.2, 0.2, -0.4, 0.3, -0.4, -0.4, -0.3, -0.4])  # arms out and forward: collision-free
 TORSO = CAPSULE_NAMES.index("torso")
-
-
-class StateLog:
-    """Every JointState received, with the local receive time."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.states: list[tuple[float, JointState]] = []
-
-    def __call__(self, message: JointState) -> None:
-        with self.lock:
-            self.states.append((time.monotonic(), message))
-
-    def since(self, t: float) -> list[tuple[float, JointState]]:
-        with self.lock:
-            return [(r, m) for r, m in self.states if r >= t]
-
-    def wait(self, predicate, timeout: float, since: float) -> tuple[float, JointState]:
-        """The first state received after ``since`` whose q satisfies ``predicate``."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for received, message in self.since(since):
-                if predicate(message.q):
-                    return received, message
-            time.sleep(0.005)
-        last = self.since(since)[-1:]
-        raise AssertionError(f"no matching JointState within {timeout}s; last: {last}")
 
 
 class Commander:
@@ -105,12 +78,10 @@ def test_executor_follows_holds_and_counts_over_zenoh(spawn, which: str) -> None
         "-m", "safemimic.cli", "executor", "--mode", "peer", "--listen", endpoint, "--no-multicast",
         "--viewer", *model_flags, env={"DISPLAY": "", "WAYLAND_DISPLAY": ""},
     )
-    states, watcher = StateLog(), AliveWatcher()
     with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
-        bus.subscribe("robot/joint_state", states)
-        bus.watch_alive(watcher)
-        watcher.wait("executor", True, timeout=20)
-        _, first = states.wait(lambda q: True, timeout=10, since=0.0)
+        states = BusRecorder(bus, ("robot/joint_state",), alive=True)
+        states.wait_token("executor", True, timeout_s=20)
+        first = states.wait("robot/joint_state", lambda m: True, timeout_s=10, since=0.0)
         np.testing.assert_allclose(first.q, Q_HOME, atol=1e-3)  # no command yet: home
 
         # A step on all 8 joints is followed to within 0.02 rad in 0.5 s.
@@ -118,16 +89,17 @@ def test_executor_follows_holds_and_counts_over_zenoh(spawn, which: str) -> None
         commander = Commander(bus, target)
         while not commander.first_put:
             time.sleep(0.001)
-        reached, _ = states.wait(lambda q: np.abs(q - target).max() < 0.02, timeout=2, since=commander.first_put)
+        reached, _ = states.wait_timed("robot/joint_state", lambda m: np.abs(m.q - target).max() < 0.02, timeout_s=2,
+                                       since=commander.first_put)
         print(f"{which}: step followed to within 0.02 rad after {reached - commander.first_put:.3f} s")
         assert reached - commander.first_put <= 0.5, f"reached after {reached - commander.first_put:.3f} s"
 
         # Commands stop once the robot has settled (still moving at "within 0.02 rad", it may pass
         # 0.02 again on its way in): after the timeout it keeps holding the last commanded position.
-        states.wait(lambda q: np.abs(q - target).max() < 0.01, timeout=2, since=reached)
+        states.wait("robot/joint_state", lambda m: np.abs(m.q - target).max() < 0.01, timeout_s=2, since=reached)
         stopped = commander.stop()
         time.sleep(0.7)
-        held = [m.q for r, m in states.since(stopped)]
+        held = [m.q for m in states.between("robot/joint_state", stopped)]
         assert len(held) > 50, "JointState must keep coming while commands are stale"
         assert np.abs(np.array(held) - target).max() < 0.02
 
@@ -146,7 +118,7 @@ def test_executor_follows_holds_and_counts_over_zenoh(spawn, which: str) -> None
             time.sleep(0.02)
         after = time.monotonic()
         time.sleep(0.2)
-        assert len(states.since(after)) > 10, "the service stopped publishing after bad input"
+        assert len(states.between("robot/joint_state", after)) > 10, "the service stopped publishing after bad input"
 
     service.popen.terminate()
     counters = service.wait_json("stopped", timeout=15)

@@ -21,10 +21,10 @@ from services.executor.g1.fake_robot import BALANCE_POSE  # noqa: E402
 from services.executor.g1.layout import WEIGHT_SLOT  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.config import BusConfig  # noqa: E402
-from shared.messages import JointCommand, JointState  # noqa: E402
+from shared.messages import JointCommand  # noqa: E402
 from shared.robot_spec import default_robot_spec_path, load_robot_spec  # noqa: E402
+from tests.support.bus import BusRecorder  # noqa: E402
 from tests.support.processes import free_port  # noqa: E402
-from tests.test_bus import AliveWatcher  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
@@ -57,16 +57,6 @@ class Commander:
         return self.last_put
 
 
-class States:
-    def __init__(self) -> None:
-        self.latest: JointState | None = None
-        self.count = 0
-
-    def __call__(self, message: JointState) -> None:
-        self.latest = message
-        self.count += 1
-
-
 def domain() -> int:
     """A DDS domain of its own for this test (CycloneDDS accepts 0–232; the robot uses 0)."""
     return 1 + (os.getpid() * 7 + int(time.time() * 1000)) % 200
@@ -97,10 +87,8 @@ def stop(proc, event: str = "stopped") -> dict:
 
 def command_once_ramped_in(endpoint: str, q: np.ndarray) -> None:
     """Once the executor is alive, command ``q`` for the ramp-in and 0.7 s more."""
-    watcher = AliveWatcher()
     with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
-        bus.watch_alive(watcher)
-        watcher.wait("executor", True, timeout=30)
+        BusRecorder(bus, (), alive=True).wait_token("executor", True, timeout_s=30)
         commander = Commander(bus, q)
         time.sleep(RAMP_IN_S + 0.7)
         commander.stop()
@@ -122,16 +110,14 @@ def test_arm_sdk_ramps_follows_and_ramps_out_on_lost_state_and_commands(spawn, t
     dds = domain()
     robot, record = start_robot(spawn, tmp_path, dds)
     service, endpoint = start_executor(spawn, dds)
-    states, watcher = States(), AliveWatcher()
     with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
-        bus.subscribe("robot/joint_state", states)
-        bus.watch_alive(watcher)
-        watcher.wait("executor", True, timeout=30)
-        wait_until(lambda: states.latest is not None, 10)
-        np.testing.assert_allclose(states.latest.q[2:], BALANCE_POSE[SLOTS[2:]], atol=1e-3)  # the robot's own pose
+        states = BusRecorder(bus, ("robot/joint_state",), alive=True)
+        states.wait_token("executor", True, timeout_s=30)
+        wait_until(lambda: states.last("robot/joint_state") is not None, 10)
+        np.testing.assert_allclose(states.last("robot/joint_state").q[2:], BALANCE_POSE[SLOTS[2:]], atol=1e-3)  # the robot's own pose
 
         commander = Commander(bus, TARGET)
-        wait_until(lambda: np.abs(states.latest.q - TARGET).max() < 0.02, 5)  # ramped in, followed
+        wait_until(lambda: np.abs(states.last("robot/joint_state").q - TARGET).max() < 0.02, 5)  # ramped in, followed
         robot.popen.send_signal(signal.SIGUSR1)  # the robot's state stream stops ...
         time.sleep(1.0)
         robot.popen.send_signal(signal.SIGUSR1)  # ... and comes back
@@ -198,10 +184,8 @@ def test_locked_waist(spawn, tmp_path: Path, policy: str) -> None:
         assert "cannot move ['waist_roll_joint', 'waist_pitch_joint']" in output and "arms_only" in output
         assert stop(robot)["frames"] == 0, "nothing was sent"
         return
-    watcher = AliveWatcher()
     with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
-        bus.watch_alive(watcher)
-        watcher.wait("executor", True, timeout=30)
+        BusRecorder(bus, (), alive=True).wait_token("executor", True, timeout_s=30)
         commander = Commander(bus, TARGET)  # waist roll 0.1, pitch 0.05: dropped
         time.sleep(RAMP_IN_S + 0.7)
         commander.stop()
@@ -263,10 +247,8 @@ def test_dry_run_sends_nothing_and_prints_checked_frames(spawn, tmp_path: Path) 
     dds = domain()
     robot, _ = start_robot(spawn, tmp_path, dds)
     service, endpoint = start_executor(spawn, dds, "--dry-run", dry_run_print_s="0.2")
-    watcher = AliveWatcher()
     with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
-        bus.watch_alive(watcher)
-        watcher.wait("executor", True, timeout=30)
+        BusRecorder(bus, (), alive=True).wait_token("executor", True, timeout_s=30)
         commander = Commander(bus, TARGET)
         frame = service.wait_json("g1_frame", timeout=10)
         time.sleep(RAMP_IN_S + 0.3)

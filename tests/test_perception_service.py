@@ -11,7 +11,6 @@ import json
 import math
 import subprocess
 import sys
-import threading
 
 import numpy as np
 import pytest
@@ -20,9 +19,10 @@ from services.perception.placement import Placement
 from services.perception.scenarios import get_scenario, scenario_recording
 from shared.bus import Bus
 from shared.config import BusConfig, HumanConfig, load_config
-from shared.messages import ConfigUpdate, HumanState, Message
+from shared.messages import ConfigUpdate, HumanState
 from shared.names import KEYPOINT_INDEX as K
 from shared.skeleton import write_recording
+from tests.support.bus import BusRecorder
 from tests.support.processes import free_port
 from tests.support.team import REPO
 
@@ -62,23 +62,9 @@ def test_service_streams_a_30fps_replay_in_order_without_heavy_imports(spawn, tm
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     robot_id = f"perception_test_{port}"
-    received: list[HumanState] = []
-    alive: list[tuple[str, bool]] = []
-    changed = threading.Condition()
-
-    def on_state(message: Message) -> None:
-        with changed:
-            received.append(message)  # type: ignore[arg-type]
-
-    def on_alive(service: str, up: bool) -> None:
-        with changed:
-            alive.append((service, up))
-            changed.notify_all()
-
     conf = BusConfig(mode="peer", listen=[endpoint], multicast_scouting=False)
     with Bus(conf, robot_id, "test") as bus:
-        bus.subscribe("human/state", on_state)
-        bus.watch_alive(on_alive)
+        seen = BusRecorder(bus, ("human/state",), alive=True)
         service = spawn(
             "-c", LIGHT_RUNNER, "perception", "--recording", str(path), "--robot-id", robot_id,
             "--mode", "peer", "--connect", endpoint, "--no-multicast", "--wait-subscriber", "10",
@@ -88,9 +74,9 @@ def test_service_streams_a_30fps_replay_in_order_without_heavy_imports(spawn, tm
         done = service.wait_json("done", timeout=SECONDS + 15)
         imports = service.wait_json("imports", timeout=10)
         assert service.popen.wait(10) == 0
-        with changed:
-            assert changed.wait_for(lambda: ("perception", False) in alive, 5), alive
-            assert alive.index(("perception", True)) < alive.index(("perception", False))
+        gone = seen.wait_token("perception", False, timeout_s=5)
+        assert seen.wait_token("perception", True, timeout_s=0) < gone
+    received: list[HumanState] = seen.between("human/state")
 
     frames = len(recording)
     assert imports == {"event": "imports", "attempted": [], "loaded": []}
@@ -151,10 +137,9 @@ def test_service_keeps_running_through_a_recording_full_of_garbage(spawn, tmp_pa
     path = write_recording(tmp_path / "garbage.npz", recording)
     port = free_port()
     robot_id = f"perception_garbage_{port}"
-    received: list[HumanState] = []
     conf = BusConfig(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
     with Bus(conf, robot_id, "test") as bus:
-        bus.subscribe("human/state", received.append)  # type: ignore[arg-type]
+        seen = BusRecorder(bus, ("human/state",))
         service = spawn(
             "-m", "safemimic.cli", "perception", "--recording", str(path), "--robot-id", robot_id, "--fast",
             "--mode", "peer", "--connect", f"tcp/127.0.0.1:{port}", "--no-multicast", "--wait-subscriber", "10",
@@ -164,6 +149,7 @@ def test_service_keeps_running_through_a_recording_full_of_garbage(spawn, tmp_pa
     assert done["errors"] == 0 and done["published"] == len(recording)
     assert done["rejected_jumps"] > 0 and done["invalid_frames"] > 0
     assert bus.dropped.total() == 0
+    received = seen.between("human/state")
     assert received and all(np.isfinite(m.theta).all() and np.isfinite(m.capsules).all() for m in received)
     print(json.dumps({k: done[k] for k in ("rejected_jumps", "reacquired", "invalid_frames", "missing_points")}))
 
@@ -173,25 +159,16 @@ def test_config_updates_apply_at_the_next_frame(spawn) -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     robot_id = f"perception_config_{port}"
-    latest: list[HumanState] = []
-    got = threading.Condition()
-
-    def on_state(message: Message) -> None:
-        with got:
-            latest.append(message)  # type: ignore[arg-type]
-            got.notify_all()
-
     stack = load_config().model_dump(mode="json")
     with Bus(BusConfig(mode="peer", listen=[endpoint], multicast_scouting=False), robot_id, "test") as bus:
-        bus.subscribe("human/state", on_state)
+        seen = BusRecorder(bus, ("human/state",))
         service = spawn(
             "-m", "safemimic.cli", "perception", "--scenario", "neutral", "--loop", "--robot-id", robot_id,
             "--mode", "peer", "--connect", endpoint, "--no-multicast", "--wait-subscriber", "10", "--duration", "20",
         )
         service.wait_json("ready", timeout=20)
-        with got:
-            assert got.wait_for(lambda: len(latest) >= 3, 5)
-        assert latest[-1].capsule_radii[0] == pytest.approx(0.15)
+        seen.wait_count("human/state", 3, timeout_s=5)
+        assert seen.last("human/state").capsule_radii[0] == pytest.approx(0.15)
         publisher = bus.publisher("config")
         bad = json.loads(json.dumps(stack))
         bad["human"]["torso_radius"] = 5.0  # beyond the model's bound: refused
@@ -200,8 +177,7 @@ def test_config_updates_apply_at_the_next_frame(spawn) -> None:
         good["human"]["torso_radius"] = 0.2
         good["perception"]["angles"]["estimator"] = "paper"
         publisher.put(ConfigUpdate(stamp=0.0, version=2, changed=["human.torso_radius"], config=good))
-        with got:
-            assert got.wait_for(lambda: latest[-1].capsule_radii[0] == pytest.approx(0.2), 5)
+        seen.wait("human/state", lambda m: m.capsule_radii[0] == pytest.approx(0.2), timeout_s=5)
         service.popen.terminate()
         done = service.wait_json("done", timeout=10)
     assert done["config_version"] == 2 and done["rejected_configs"] == 1 and done["errors"] == 0

@@ -13,21 +13,22 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
 from pydantic import ValidationError
 
-from bench.common import wake_latency
 from services.safety.service import RESYNC_DONE, RESYNC_TOLERANCE, SafetyService
 from shared.bus import Bus
 from shared.config import BusConfig, load_config
-from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
+from shared.messages import ConfigUpdate, HumanState, JointState, SafetyMode
 from shared.names import CAPSULE_NAMES, KEYPOINT_NAMES, POSE_ANGLE_NAMES
 from shared.realtime import enter_realtime, leave_realtime
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
+from tests.support.bus import BusRecorder
+from tests.support.machine import wake_latency
 from tests.support.processes import Proc, free_port
 
 LEFT_SHOULDER_PITCH = POSE_ANGLE_NAMES.index("left_shoulder_pitch")  # θ index = joint index
@@ -82,51 +83,6 @@ def arm_forward() -> np.ndarray:
     return theta
 
 
-@dataclass
-class Recorder:
-    """Every JointCommand and SafetyStatus received, with the local receive time."""
-
-    commands: list[tuple[float, JointCommand]] = field(default_factory=list)
-    statuses: list[tuple[float, SafetyStatus]] = field(default_factory=list)
-    lock: threading.Lock = field(default_factory=threading.Lock)
-
-    def attach(self, bus: Bus) -> None:
-        bus.subscribe("robot/command", lambda m: self._add(self.commands, m))
-        bus.subscribe("safety/status", lambda m: self._add(self.statuses, m))
-
-    def _add(self, into: list, message) -> None:
-        with self.lock:
-            into.append((time.monotonic(), message))
-
-    def statuses_since(self, t: float) -> list[SafetyStatus]:
-        with self.lock:
-            return [m for r, m in self.statuses if r >= t]
-
-    def wait_status(self, predicate, timeout: float, since: float | None = None) -> SafetyStatus:
-        """The first status received after ``since`` (default: now) satisfying ``predicate``."""
-        since = time.monotonic() if since is None else since
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for message in self.statuses_since(since):
-                if predicate(message):
-                    return message
-            time.sleep(0.01)
-        last = self.statuses_since(since)[-1:] or self.statuses[-1:]
-        raise AssertionError(f"no matching status within {timeout}s; last: {last}")
-
-    def last_command(self) -> JointCommand:
-        with self.lock:
-            return self.commands[-1][1]
-
-    def wait_command(self, predicate, timeout: float) -> JointCommand:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.commands and predicate(self.last_command()):
-                return self.last_command()
-            time.sleep(0.01)
-        raise AssertionError(f"no matching command within {timeout}s; last: {self.last_command()}")
-
-
 class HumanPublisher:
     """Publishes ``make()`` at 30 Hz on human/state from a thread until stopped."""
 
@@ -161,12 +117,11 @@ def service_args(port: int, robot_id: str, duration: float) -> list[str]:
             "--no-multicast", "--robot-id", robot_id, "--duration", str(duration), "--rate", str(RATE_HZ)]
 
 
-def wait_first_command(rec: Recorder, proc: Proc, timeout: float = 20.0) -> float:
+def wait_first_command(rec: BusRecorder, proc: Proc, timeout: float = 20.0) -> float:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        with rec.lock:
-            if rec.commands:
-                return rec.commands[0][0]
+        if commands := rec.timed("robot/command"):
+            return commands[0][0]
         if proc.popen.poll() is not None:
             break
         time.sleep(0.01)
@@ -176,7 +131,7 @@ def wait_first_command(rec: Recorder, proc: Proc, timeout: float = 20.0) -> floa
 # --------------------------------------------------------------------------- 500 Hz for 5 s
 @pytest.fixture(scope="module")
 def machine_wake() -> dict:
-    """This machine's wake-up latency for a SCHED_FIFO thread (:func:`bench.common.wake_latency`):
+    """This machine's wake-up latency for a SCHED_FIFO thread (:func:`tests.support.machine.wake_latency`):
     the deadline-miss budgets are held only where it keeps time. On a VM whose idle vCPUs halt, a
     thread doing nothing but sleep to 2 ms deadlines is woken up to 3 ms late (measured on the CI
     VM, idle: p99 ≈ 1 ms), and the budget would measure the host (architecture §8)."""
@@ -187,16 +142,14 @@ def machine_wake() -> dict:
 def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, machine_wake: dict) -> None:
     port = free_port()
     robot_id = f"rate{port}"
-    rec = Recorder()
     with Bus(loopback_bus(port), robot_id, "test") as bus:
-        rec.attach(bus)
+        rec = BusRecorder(bus, ("robot/command", "safety/status"))
         proc = spawn(*service_args(port, robot_id, 6.5))
         t0 = wait_first_command(rec, proc)
         assert "safety" in bus.alive_services(timeout_s=1.0)
         time.sleep(max(0.0, t0 + 5.2 - time.monotonic()))
-        with rec.lock:
-            commands = list(rec.commands)
-            status = rec.statuses[-1][1]
+        commands = rec.timed("robot/command")
+        status = rec.last("safety/status")
         summary = proc.wait_for(lambda line: line.startswith("safety:") and "ticks" in line, timeout=10)
         assert proc.popen.wait(5) == 0
         decode_failures = dict(bus.dropped)
@@ -242,7 +195,7 @@ def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, m
 @dataclass
 class Live:
     bus: Bus
-    rec: Recorder
+    rec: BusRecorder
     proc: Proc
     port: int
 
@@ -252,13 +205,12 @@ def live() -> Iterator[Live]:
     """One service process for the behavioural checks below (≈ 2 s startup paid once)."""
     port = free_port()
     robot_id = f"live{port}"
-    rec = Recorder()
     with Bus(loopback_bus(port), robot_id, "test") as bus:
-        rec.attach(bus)
+        rec = BusRecorder(bus, ("robot/command", "safety/status"))
         proc = Proc([sys.executable, *service_args(port, robot_id, 60)])
         try:
             wait_first_command(rec, proc)
-            rec.wait_status(lambda s: True, timeout=5, since=0.0)
+            rec.wait("safety/status", lambda s: True, timeout_s=5, since=0.0)
             yield Live(bus, rec, proc, port)
         finally:
             proc.stop()
@@ -271,12 +223,12 @@ def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) 
     humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"], keypoints))
     try:
         # The arm follows the retargeted q_nom (arm forward = negative G1 shoulder pitch).
-        command = live.rec.wait_command(lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout=5)
+        command = live.rec.wait("robot/command", lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout_s=5)
         assert command.mode in (SafetyMode.NOMINAL, SafetyMode.ACTIVE)
         time.sleep(0.5)  # converged onto q_nom (K = 8/s)
-        tracking = live.rec.last_command().q
+        tracking = live.rec.last("robot/command").q
         assert tracking[2] < -1.3
-        status = live.rec.wait_status(lambda s: s.min_h_human is not None, timeout=2)
+        status = live.rec.wait("safety/status", lambda s: s.min_h_human is not None, timeout_s=2)
         assert status.min_h_human > 1.0  # 2 m away
         assert status.total_constraints == N_SELF_PAIRS + 49 and not status.human_stale
 
@@ -295,7 +247,7 @@ def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) 
         capsules[LEFT_FOREARM] = [[x1, -0.1, 1.1], [x1, 0.4, 1.1]]
         state["capsules"], state["velocities"] = capsules, np.zeros((7, 2, 3))
         time.sleep(1.0)
-        during = live.rec.statuses_since(start)
+        during = live.rec.between("safety/status", start)
     finally:
         humans.stop()
 
@@ -306,7 +258,7 @@ def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) 
     assert any(s.mode is SafetyMode.ACTIVE for s in during)
     print(f"\n  intrusion: min h_human {min(s.min_h_human for s in during) * 1e3:.2f} mm, "
           f"modes {sorted({s.mode.value for s in during})}")
-    final = live.rec.last_command()
+    final = live.rec.last("robot/command")
     assert np.isfinite(final.q).all()
     assert np.abs(final.q - tracking).max() > 0.05  # the robot gave way: no longer at q_nom
 
@@ -319,7 +271,7 @@ def test_a_person_inside_the_forearm_is_reported_as_intrusion_and_relaxed_pairs_
     state = {"capsules": far, "velocities": np.zeros((7, 2, 3))}
     humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"], keypoints))
     try:
-        live.rec.wait_command(lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout=5)
+        live.rec.wait("robot/command", lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout_s=5)
         time.sleep(0.5)
         start = time.monotonic()
         for x in np.arange(0.9, -0.05, -2.0 / 60):  # across the arm and into the chest at 2 m/s
@@ -330,28 +282,28 @@ def test_a_person_inside_the_forearm_is_reported_as_intrusion_and_relaxed_pairs_
             state["capsules"], state["velocities"] = capsules, velocities
             time.sleep(1 / 60)
         time.sleep(0.5)
-        during = live.rec.statuses_since(start)
+        during = live.rec.between("safety/status", start)
     finally:
         humans.stop()
-    live.rec.wait_status(lambda s: s.human_stale, timeout=3)  # leave the service as the next test expects
+    live.rec.wait("safety/status", lambda s: s.human_stale, timeout_s=3)  # leave the service as the next test expects
     intrusions = [s for s in during if s.person_intrusion]
     relaxed = [s for s in during if s.relaxed_pairs]
     assert intrusions, sorted({s.mode.value for s in during})
     assert relaxed and all(name.split("|")[1].startswith("human") for s in relaxed for name in s.relaxed_pairs), relaxed[:2]
     assert any("|human.left_forearm" in name for s in relaxed for name in s.relaxed_pairs)
     assert any(s.mode is SafetyMode.RELAXED for s in during)  # relaxed_pairs gather every step since the last status
-    assert np.isfinite(live.rec.last_command().q).all()
+    assert np.isfinite(live.rec.last("robot/command").q).all()
 
 
 @pytest.mark.integration
 def test_malformed_human_state_is_counted_and_the_loop_keeps_running(live: Live) -> None:
-    before = live.rec.wait_status(lambda s: True, timeout=2).dropped.get("human/state", 0)
-    seq_before = live.rec.last_command().seq
+    before = live.rec.wait("safety/status", lambda s: True, timeout_s=2).dropped.get("human/state", 0)
+    seq_before = live.rec.last("robot/command").seq
     for payload in (b"\x93garbage", b"", b"\xc1" * 40, human_state(arm_forward(), person()[1]).model_dump_json().encode()):
         live.bus.put_raw("human/state", payload)
-    status = live.rec.wait_status(lambda s: s.dropped.get("human/state", 0) >= before + 4, timeout=3)
+    status = live.rec.wait("safety/status", lambda s: s.dropped.get("human/state", 0) >= before + 4, timeout_s=3)
     time.sleep(0.1)
-    assert live.rec.last_command().seq > seq_before + 50
+    assert live.rec.last("robot/command").seq > seq_before + 50
     assert status.mode in tuple(SafetyMode)
 
 
@@ -361,26 +313,26 @@ def test_config_updates_apply_and_invalid_ones_are_counted(live: Live) -> None:
     full = load_config(environ={}).model_dump(mode="json")
     full["safety"]["gamma"] = 4.0
     publisher.put(ConfigUpdate(stamp=time.monotonic(), version=7, changed=["safety.gamma"], config=full))
-    status = live.rec.wait_status(lambda s: s.config_version == 7, timeout=3)
+    status = live.rec.wait("safety/status", lambda s: s.config_version == 7, timeout_s=3)
     rejected_before = status.dropped.get("config", 0)
 
     bad = load_config(environ={}).model_dump(mode="json")
     bad["safety"]["gamma"] = -1
     publisher.put(ConfigUpdate(stamp=time.monotonic(), version=8, changed=["safety.gamma"], config=bad))
-    status = live.rec.wait_status(lambda s: s.dropped.get("config", 0) == rejected_before + 1, timeout=3)
+    status = live.rec.wait("safety/status", lambda s: s.dropped.get("config", 0) == rejected_before + 1, timeout_s=3)
     assert status.config_version == 7
     time.sleep(0.1)
-    assert live.rec.statuses_since(0.0)[-1].config_version == 7
+    assert live.rec.between("safety/status", 0.0)[-1].config_version == 7
 
     # A structural change (QP backend) swaps the pipeline at the next step, the loop keeps its rate.
     full["safety"]["backend"] = "osqp"
     publisher.put(ConfigUpdate(stamp=time.monotonic(), version=9, changed=["safety.backend"], config=full))
-    status = live.rec.wait_status(lambda s: s.config_version == 9, timeout=5)
+    status = live.rec.wait("safety/status", lambda s: s.config_version == 9, timeout_s=5)
     assert status.backend == "osqp"
-    assert np.isfinite(live.rec.last_command().q).all()
+    assert np.isfinite(live.rec.last("robot/command").q).all()
     full["safety"]["backend"] = "daqp"  # back to the default for the checks that follow
     publisher.put(ConfigUpdate(stamp=time.monotonic(), version=10, changed=["safety.backend"], config=full))
-    assert live.rec.wait_status(lambda s: s.config_version == 10, timeout=5).backend == "daqp"
+    assert live.rec.wait("safety/status", lambda s: s.config_version == 10, timeout_s=5).backend == "daqp"
 
 
 @pytest.mark.integration
@@ -391,11 +343,11 @@ def test_stale_human_keeps_capsules_and_is_reported(live: Live) -> None:
     # last put are fresh ones and the first stale one is the timeout's (stopping at the first fresh
     # status, the only put could be the first, and a status computed before it arrived was taken
     # for the timeout: stale after 0 s).
-    live.rec.wait_status(lambda s: not s.human_stale and s.min_h_human is not None and s.min_h_human > 0.5, timeout=3)
+    live.rec.wait("safety/status", lambda s: not s.human_stale and s.min_h_human is not None and s.min_h_human > 0.5, timeout_s=3)
     time.sleep(0.2)
     last_put = humans.stop()
-    status = live.rec.wait_status(lambda s: s.human_stale, timeout=3)
-    stale_after = next(r for r, s in list(live.rec.statuses) if r > last_put and s.human_stale) - last_put
+    status = live.rec.wait("safety/status", lambda s: s.human_stale, timeout_s=3)
+    stale_after = next(r for r, s in live.rec.timed("safety/status") if r > last_put and s.human_stale) - last_put
     assert 0.45 <= stale_after <= 0.5 + 0.3, stale_after  # human_timeout_s = 0.5
     assert status.min_h_human is not None and 0.5 < status.min_h_human < 1.5  # capsules kept
 

@@ -15,7 +15,6 @@ import os
 import stat
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ from shared.bus import Bus
 from shared.config import BusConfig, ConfigError, TlsConfig, load_config
 from shared.messages import ConfigUpdate, JointCommand, JointState, SafetyMode, SafetyStatus
 from shared.tls import tls_files, zenoh_tls
+from tests.support.bus import BusRecorder
 from tests.support.messages import one_of_every_message
 from tests.support.processes import free_port
 from tests.support.team import REPO
@@ -199,40 +199,13 @@ def test_a_session_without_a_certificate_of_our_ca_cannot_join(secure_router: Se
                                     private_key=theirs["connect_private_key"])), "g1", "perception")
 
 
-class Inbox:
-    """Every message and liveliness change one observer session sees."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.topics: dict[str, list] = {}
-        self.alive: set[str] = set()
-
-    def sink(self, topic: str):
-        def keep(message) -> None:
-            with self.lock:
-                self.topics.setdefault(topic, []).append(message)
-        return keep
-
-    def on_alive(self, service: str, up: bool) -> None:
-        with self.lock:
-            (self.alive.add if up else self.alive.discard)(service)
-
-    def count(self, topic: str) -> int:
-        with self.lock:
-            return len(self.topics.get(topic, []))
-
-
 @pytest.mark.integration
 def test_each_identity_puts_only_its_own_keys_and_declares_only_its_own_token(secure_router: SecureRouter) -> None:
     messages = one_of_every_message()
-    inbox = Inbox()
     with secure_router.bus("viewer") as viewer, secure_router.bus("perception") as perception, \
             secure_router.bus("health") as health, secure_router.bus("viewer", service="viewer2") as viewer2:
-        for topic in messages:
-            viewer.subscribe(topic, inbox.sink(topic))
-        viewer.watch_alive(inbox.on_alive)
-        health_inbox = Inbox()
-        health.subscribe("human/state", health_inbox.sink("human/state"))  # health may only ask for tokens
+        inbox = BusRecorder(viewer, messages, alive=True)
+        health_inbox = BusRecorder(health, ("human/state",))  # health may only ask for tokens
         publishers = {topic: perception.publisher(topic) for topic in messages}
         viewer_config = viewer2.publisher("config")  # another session: no local delivery
         perception.declare_alive("perception")
@@ -250,7 +223,7 @@ def test_each_identity_puts_only_its_own_keys_and_declares_only_its_own_token(se
         assert inbox.count("human/state") == 5  # perception's own key passes
         for topic in ("config", "robot/command", "robot/joint_state", "safety/status"):
             assert inbox.count(topic) == 0, topic  # dropped at the router
-        assert inbox.alive == {"perception"}  # its own token, not the forged one
+        assert inbox.alive_tokens() == {"perception"}  # its own token, not the forged one
         assert health_inbox.count("human/state") == 0
         assert health.alive_services(1.0) == {"perception"}
         flags = ["--mode", "client", "--connect", secure_router.endpoint, "--no-multicast", "--certs", str(secure_router.certs)]
@@ -277,14 +250,12 @@ def test_forged_config_and_commands_from_perception_change_nothing(spawn, secure
     site = secure_router.site(tmp_path)
     for name in ("executor", "safety"):
         spawn("-m", "safemimic.cli", *command(name, site)[1:])
-    inbox = Inbox()
     with secure_router.bus("viewer") as viewer:
-        viewer.subscribe("safety/status", inbox.sink("safety/status"))
-        viewer.subscribe("robot/joint_state", inbox.sink("robot/joint_state"))
+        inbox = BusRecorder(viewer, ("safety/status", "robot/joint_state"))
         _wait(lambda: inbox.count("safety/status") > 10 and inbox.count("robot/joint_state") > 10, 90, "the stack")
-        before: SafetyStatus = inbox.topics["safety/status"][-1]
+        before: SafetyStatus = inbox.last("safety/status")
         assert before.total_constraints > 0 and before.config_version == 0
-        home = inbox.topics["robot/joint_state"][-1].q_command
+        home = inbox.last("robot/joint_state").q_command
         rogue_q = home + 0.05
         whole = load_config(environ={}).model_dump(mode="json")
         whole["safety"]["enabled_pair_groups"] = []
@@ -304,13 +275,12 @@ def test_forged_config_and_commands_from_perception_change_nothing(spawn, secure
             return start
 
         def obeyed(start: int) -> int:
-            with inbox.lock:
-                states: list[JointState] = inbox.topics["robot/joint_state"][start:]
+            states: list[JointState] = [state for _, state in inbox.timed("robot/joint_state")[start:]]
             return sum(bool(np.allclose(s.q_command, rogue_q, atol=1e-9)) for s in states)
 
         with secure_router.bus("perception", service="intruder") as intruder:
             start = attack(intruder, 999, 1.5)
-        after: SafetyStatus = inbox.topics["safety/status"][-1]
+        after: SafetyStatus = inbox.last("safety/status")
         assert after.config_version == before.config_version == 0
         assert after.total_constraints == before.total_constraints
         assert obeyed(start) == 0  # the executor never held the forged target
@@ -322,5 +292,5 @@ def test_forged_config_and_commands_from_perception_change_nothing(spawn, secure
         assert obeyed(start) > 0
         with secure_router.bus("config_api", service="intruder") as as_api:
             as_api.publisher("config").put(ConfigUpdate(stamp=time.monotonic(), version=7, changed=[], config=whole))
-            _wait(lambda: inbox.topics["safety/status"][-1].config_version == 7, 10, "the config API's update applied")
-        assert inbox.topics["safety/status"][-1].total_constraints == 0
+            _wait(lambda: inbox.last("safety/status").config_version == 7, 10, "the config API's update applied")
+        assert inbox.last("safety/status").total_constraints == 0

@@ -35,7 +35,6 @@ import math
 import sys
 import threading
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -50,7 +49,7 @@ from shared.config import ConfigError, ExecutorBackend, StackConfig
 from shared.messages import HumanState, JointCommand, JointState
 from shared.robot_spec import RobotSpecError, configured_robot_spec
 from shared.schedule import FixedRateSchedule
-from shared.service import ScheduledService, StepErrors
+from shared.service import Refusals, ScheduledService, StepErrors, StepTimes
 from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.executor")
@@ -106,14 +105,14 @@ class ExecutorService(ScheduledService):
         self.command_timeouts = 0
         self.human_updates = 0
         self.tally = ContactTally()
-        self._tick_times = np.zeros(_TICK_TIME_WINDOW)
+        self.tick_times = StepTimes(_TICK_TIME_WINDOW)
         self._target = self.executor.q_home
         self._zero = np.zeros(n)
         self._applied: Received[JointCommand] | None = None
         self._human_seen: Received[HumanState] | None = None
         self._stale = False
         self._next_state = -math.inf
-        self._rejected: Counter[str] = Counter()
+        self.refusals = Refusals()
         self.command: Latest[JointCommand] = Latest()
         self.human: Latest[HumanState] = Latest()
 
@@ -159,7 +158,7 @@ class ExecutorService(ScheduledService):
                                            command_stale=self._stale))
             state_period = 1.0 / self.conf.executor.state_rate_hz
             self._next_state = max(self._next_state + state_period, now + 0.5 * state_period)
-        self._tick_times[self.ticks % _TICK_TIME_WINDOW] = time.perf_counter() - started
+        self.tick_times.record(time.perf_counter() - started)
         self.ticks += 1
 
     def _apply_command(self, now: float) -> None:
@@ -187,10 +186,7 @@ class ExecutorService(ScheduledService):
 
     def dropped(self) -> dict[str, int]:
         """Invalid or refused messages per topic: undecodable, failing callbacks, rejected."""
-        total = Counter(self.bus.dropped)
-        total.update(self.bus.callback_errors)
-        total.update(self._rejected)
-        return {topic: int(count) for topic, count in total.items() if count}
+        return self.refusals.by_topic(self.bus)
 
     # the loop --------------------------------------------------------------------------------
     def run(self, stop: threading.Event, duration: float | None = None) -> dict[str, Any]:
@@ -222,8 +218,7 @@ class ExecutorService(ScheduledService):
 
     def counters(self, elapsed_s: float | None = None) -> dict[str, Any]:
         """Counters so far (JSON-ready): ticks, timing, commands, staleness, drops, contacts."""
-        n = min(self.ticks, _TICK_TIME_WINDOW)
-        tick_us = self._tick_times[:n] * 1e6 if n else np.zeros(1)
+        tick_us = self.tick_times.recent() * 1e6
         out: dict[str, Any] = {
             "ticks": self.ticks,
             "rate_hz": self.conf.executor.rate_hz,
@@ -243,9 +238,7 @@ class ExecutorService(ScheduledService):
         }
         if isinstance(self.executor, ReportsCounters):
             out["robot"] = self.executor.counters()
-        if elapsed_s is not None:
-            out["elapsed_s"] = elapsed_s
-            out["achieved_hz"] = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
+        out.update(self.rate_counters(elapsed_s))
         return out
 
 

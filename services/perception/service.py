@@ -35,7 +35,7 @@ from shared.bus import Bus, topic_key
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, PerceptionConfig, SkeletonSourceName, StackConfig, validate_config
 from shared.messages import ConfigUpdate
-from shared.service import BusService, StepErrors
+from shared.service import BusService, Pending, Refusals, StepErrors
 from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.perception")
@@ -63,9 +63,8 @@ class PerceptionService(BusService):
         self.published = 0
         self.frame_errors = StepErrors(log, "frame", _MAX_CONSECUTIVE_ERRORS)
         self.config_version = 0
-        self.rejected_configs = 0
-        self._pending: tuple[int, StackConfig] | None = None
-        self._pending_lock = threading.Lock()
+        self.refusals = Refusals()
+        self._pending: Pending[tuple[int, StackConfig]] = Pending()
         try:
             self._publisher = self.bus.publisher(TOPIC)
             self.bus.subscribe("config", self.on_config)
@@ -79,15 +78,13 @@ class PerceptionService(BusService):
         try:
             new = validate_config(update.config, origin=f"config update v{update.version}")
         except ConfigError as exc:
-            self.rejected_configs += 1
+            self.refusals.refuse("config")
             log.warning("rejected config update v%d: %s", update.version, exc)
             return
-        with self._pending_lock:
-            self._pending = (update.version, new)
+        self._pending.put((update.version, new))
 
     def _apply_pending_config(self) -> None:
-        with self._pending_lock:
-            pending, self._pending = self._pending, None
+        pending = self._pending.take()
         if pending is None:
             return
         version, new = pending
@@ -112,6 +109,11 @@ class PerceptionService(BusService):
             return True
         finally:
             probe.undeclare()
+
+    @property
+    def rejected_configs(self) -> int:
+        """Configuration updates refused (they did not validate)."""
+        return self.refusals.own("config")
 
     @property
     def errors(self) -> int:

@@ -66,7 +66,6 @@ class RobotKinematics:
     def __init__(self, spec: RobotSpec) -> None:
         self._spec = spec
         full = _load_model(spec.model_path)
-        self._full_model = full
 
         # ---- joints named by the spec ------------------------------------------------
         missing = [j for j in spec.imitation_joints if not full.existJointName(j)]
@@ -99,7 +98,6 @@ class RobotKinematics:
             if abs(lo) < _NO_LIMIT and abs(hi) < _NO_LIMIT and not lo - 1e-9 <= value <= hi + 1e-9:
                 raise KinematicsError(f"home[{name!r}] = {value} lies outside the joint range [{lo}, {hi}]")
             q_ref[jm.idx_q] = value
-        self._q_reference_full = q_ref
 
         # ---- reduced (fixed-base) model ---------------------------------------------
         keep = set(spec.imitation_joints)
@@ -307,16 +305,6 @@ class RobotKinematics:
     def model(self) -> pin.Model:
         """The reduced (8-joint, fixed-base) Pinocchio model, with the endpoint frames."""
         return self._model
-
-    @property
-    def full_model(self) -> pin.Model:
-        """The model as parsed (free flyer + every joint)."""
-        return self._full_model
-
-    @property
-    def q_reference_full(self) -> np.ndarray:
-        """Configuration of :attr:`full_model` used to lock the other joints (base + home)."""
-        return self._q_reference_full.copy()
 
     @property
     def joint_names(self) -> tuple[str, ...]:

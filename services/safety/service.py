@@ -57,7 +57,7 @@ from services.safety.watchdogs import Watchdogs
 from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
-from shared.service import ScheduledService, StepErrors
+from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, StackConfig, validate_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
@@ -148,7 +148,7 @@ class SafetyService(ScheduledService):
         self.config_version = 0
         self.tick_errors = StepErrors(log, "safety tick", _MAX_CONSECUTIVE_ERRORS)
         self.modes: Counter[str] = Counter()
-        self._step_times = np.zeros(_STEP_TIME_WINDOW)
+        self.step_times = StepTimes(_STEP_TIME_WINDOW)
         self._q_nom = self.pipeline.filter.q_cbf.copy()  # retargeted from the newest human state
         self._nominal = NominalTrack(self._q_nom)  # ... and extrapolated between frames
         self._last_q = self.pipeline.filter.q_cbf.copy()  # last published command
@@ -161,15 +161,13 @@ class SafetyService(ScheduledService):
         self._joint_state_seen: Received[JointState] | None = None
         self._synced = False
         self._resync_target: np.ndarray | None = None  # measured q that q_nom follows during a resync
-        self._last_step_s = 0.0
         self._next_status = -math.inf
         self._relaxed_since_status: set[str] = set()  # pairs that gave way since the last status
         self._intrusion_since_status = False
 
         # inputs, fed by the bus (Zenoh threads); everything above exists before the first callback
-        self._rejected: Counter[str] = Counter()  # valid messages we refused (config, frame, output)
-        self._config_lock = threading.Lock()
-        self._pending: _PendingConfig | None = None
+        self.refusals = Refusals()  # and valid messages we refused (config, frame, output)
+        self._pending: Pending[_PendingConfig] = Pending()
         self.open_bus(conf, SERVICE_NAME, bus)
         try:
             self._command_pub = self.bus.publisher("robot/command")
@@ -212,15 +210,15 @@ class SafetyService(ScheduledService):
         try:
             new = validate_config(update.config, origin=f"config update v{update.version}")
         except ConfigError as exc:
-            self._rejected["config"] += 1
+            self.refusals.refuse("config")
             log.warning("rejected config update v%d: %s", update.version, exc)
             return
         # The session and the key expressions are fixed for this process's life.
         if new.bus != self.conf.bus or new.robot_id != self.conf.robot_id:
             new = new.model_copy(update={"bus": self.conf.bus, "robot_id": self.conf.robot_id})
-        with self._config_lock:
-            reference = self._pending.conf if self._pending else self.conf
-            pipeline = self._pending.pipeline if self._pending else None
+        queued = self._pending.peek()
+        reference = queued.conf if queued else self.conf
+        pipeline = queued.pipeline if queued else None
         if needs_new_pipeline(reference, new):
             try:
                 pipeline = build_pipeline(new)
@@ -228,18 +226,17 @@ class SafetyService(ScheduledService):
                 human = self.human.get()
                 pipeline.warm_up(1.0 / new.safety.rate_hz, self._last_q, human.message if human is not None else None)
             except Exception as exc:  # a model that does not load, an unknown preset, ...
-                self._rejected["config"] += 1
+                self.refusals.refuse("config")
                 log.warning("rejected config update v%d: cannot build the safety pipeline: %s", update.version, exc)
                 return
         else:
             try:  # applied in place: the velocity bounds must still fit the robot
                 (pipeline or self.pipeline).spec.check_velocity_bounds(new.safety.u_max, new.safety.u_min)
             except ValueError as exc:
-                self._rejected["config"] += 1
+                self.refusals.refuse("config")
                 log.warning("rejected config update v%d: %s", update.version, exc)
                 return
-        with self._config_lock:
-            self._pending = _PendingConfig(update.version, new, pipeline)
+        self._pending.put(_PendingConfig(update.version, new, pipeline))
 
     # control tick (the loop's thread) -------------------------------------------------------
     def tick(self, now: float | None = None) -> StepResult:
@@ -263,7 +260,7 @@ class SafetyService(ScheduledService):
         q, u, mode = result.q_cbf, result.u, result.mode
         if not (np.isfinite(q).all() and np.isfinite(u).all()):  # the filter promises this never happens
             self.nonfinite_holds += 1
-            self._rejected["robot/command"] += 1
+            self.refusals.refuse("robot/command")
             q, u, mode = self._last_q.copy(), np.zeros_like(self._last_q), SafetyMode.HOLD
             pipeline.filter.reset(q)
         message = human.message if human is not None else None
@@ -276,8 +273,7 @@ class SafetyService(ScheduledService):
         )
         self._last_q = q.copy()
         self.modes[mode.value] += 1
-        self._last_step_s = time.perf_counter() - started
-        self._step_times[self.ticks % _STEP_TIME_WINDOW] = self._last_step_s
+        self.step_times.record(time.perf_counter() - started)
         self.ticks += 1
         self._relaxed_since_status.update(result.gave_way)
         self._intrusion_since_status |= result.intrusion
@@ -288,8 +284,7 @@ class SafetyService(ScheduledService):
         return result
 
     def _apply_pending_config(self) -> None:
-        with self._config_lock:
-            pending, self._pending = self._pending, None
+        pending = self._pending.take()
         if pending is None:
             return
         old, new = self.conf, pending.conf
@@ -381,7 +376,7 @@ class SafetyService(ScheduledService):
                 active_constraints=int(result.active_rows),
                 total_constraints=int(np.count_nonzero(rows.enabled)),
                 qp_solve_time_ms=max(0.0, result.qp_time_s * 1e3) if math.isfinite(result.qp_time_s) else 0.0,
-                step_time_ms=self._last_step_s * 1e3,
+                step_time_ms=self.step_times.last_s * 1e3,
                 deadline_misses=self.deadline_misses,
                 human_stale=self._human_stale,
                 joint_state_stale=self._joint_state_seen is None or self.watchdogs.tripped("joint_state"),
@@ -402,10 +397,7 @@ class SafetyService(ScheduledService):
 
     def dropped(self) -> dict[str, int]:
         """Invalid or refused messages per topic: undecodable, failing callbacks, rejected."""
-        total = Counter(self.bus.dropped)
-        total.update(self.bus.callback_errors)
-        total.update(self._rejected)
-        return {topic: int(count) for topic, count in total.items() if count}
+        return self.refusals.by_topic(self.bus)
 
     # the loop --------------------------------------------------------------------------------
     def run(self, stop: threading.Event, duration: float | None = None, rt_priority: int = 0) -> dict[str, Any]:
@@ -451,7 +443,7 @@ class SafetyService(ScheduledService):
             schedule.finished(done)
             if schedule.missed != misses_logged and done - last_miss_log >= _MISS_LOG_INTERVAL_S:
                 log.warning("%d deadline misses so far (this tick: started %.2f ms late, took %.2f ms)",
-                            schedule.missed, (now - schedule.due) * 1e3, self._last_step_s * 1e3)
+                            schedule.missed, (now - schedule.due) * 1e3, self.step_times.last_s * 1e3)
                 misses_logged, last_miss_log = schedule.missed, done
             schedule.set_period(self.period)  # a config update may have changed the rate
         counters = self.counters(time.monotonic() - schedule.begin)
@@ -460,8 +452,7 @@ class SafetyService(ScheduledService):
 
     def counters(self, elapsed_s: float | None = None) -> dict[str, Any]:
         """Final (or current) counters: ticks, deadline misses, step times, resyncs, drops, ..."""
-        n = min(self.ticks, _STEP_TIME_WINDOW)
-        steps = self._step_times[:n] * 1e3 if n else np.zeros(1)
+        steps = self.step_times.recent() * 1e3
         slots = self.ticks + self.deadline_misses
         out: dict[str, Any] = {
             "ticks": self.ticks,
@@ -482,9 +473,7 @@ class SafetyService(ScheduledService):
             "dropped": self.dropped(),
             "backend": self.pipeline.filter.backend_name,
         }
-        if elapsed_s is not None:
-            out["elapsed_s"] = elapsed_s
-            out["achieved_hz"] = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
+        out.update(self.rate_counters(elapsed_s))
         return out
 
 

@@ -1,23 +1,19 @@
-"""Real child processes for tests: a free loopback port, a process whose output is collected."""
+"""Real child processes for tests: a process whose output is collected, and a free loopback port
+(:func:`safemimic.launch.free_port`, the launcher's own)."""
 
 from __future__ import annotations
 
 import json
 import os
 import queue
-import socket
 import subprocess
 import threading
 import time
 
+from safemimic.launch import free_port
 from tests.support.team import REPO
 
-
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+__all__ = ["Proc", "free_port"]
 
 
 class Proc:

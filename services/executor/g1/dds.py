@@ -22,6 +22,7 @@ without it raises :class:`ImportError` with that hint.
 
 # No ``from __future__ import annotations``: CycloneDDS reads the IDL member types from the class
 # annotations at run time and cannot resolve them from strings.
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 from xml.sax.saxutils import quoteattr
@@ -80,6 +81,25 @@ def _cdr_to_record(data: bytes, dtype: np.dtype, mode0: int) -> np.ndarray | Non
     return np.frombuffer(struct, dtype=dtype)[0].copy()
 
 
+def _serialize(message: IdlStruct, cls: type, to_record: Callable[[Any], np.ndarray], mode0: int,
+               buffer: Any, endianness: Any, use_version_2: Any) -> bytes:
+    """``cls.serialize``: plain little-endian CDR straight from the C-struct record (``to_record``),
+    cyclonedds's own serializer for any other encoding."""
+    if buffer is None and endianness is None and not use_version_2:
+        return _struct_to_cdr(to_record(message).tobytes(), mode0)
+    return super(cls, message).serialize(buffer=buffer, endianness=endianness, use_version_2=use_version_2)
+
+
+def _deserialize(cls: type, data: bytes, dtype: np.dtype, mode0: int, from_record: Callable[[np.ndarray], Any],
+                 has_header: bool, use_version_2: Any) -> Any:
+    """``cls.deserialize``: plain little-endian CDR through the C-struct record (``from_record``),
+    cyclonedds's own deserializer for any other encoding."""
+    record = _cdr_to_record(data, dtype, mode0) if has_header and not use_version_2 else None
+    if record is None:
+        return super(cls, cls).deserialize(data, has_header=has_header, use_version_2=use_version_2)
+    return from_record(record)
+
+
 @dataclass
 @annotate.final
 @annotate.autoid("sequential")
@@ -109,16 +129,11 @@ class LowCmd_(IdlStruct, typename="unitree_hg.msg.dds_.LowCmd_"):
     crc: types.uint32
 
     def serialize(self, buffer=None, endianness=None, use_version_2=None) -> bytes:
-        if buffer is None and endianness is None and not use_version_2:
-            return _struct_to_cdr(lowcmd_to_frame(self).tobytes(), _LOWCMD_MODE0)
-        return super().serialize(buffer=buffer, endianness=endianness, use_version_2=use_version_2)
+        return _serialize(self, LowCmd_, lowcmd_to_frame, _LOWCMD_MODE0, buffer, endianness, use_version_2)
 
     @classmethod
     def deserialize(cls, data, has_header=True, use_version_2=None):
-        record = _cdr_to_record(data, LOWCMD_DTYPE, _LOWCMD_MODE0) if has_header and not use_version_2 else None
-        if record is None:
-            return super().deserialize(data, has_header=has_header, use_version_2=use_version_2)
-        return frame_to_lowcmd(record)
+        return _deserialize(LowCmd_, data, LOWCMD_DTYPE, _LOWCMD_MODE0, frame_to_lowcmd, has_header, use_version_2)
 
 
 @dataclass
@@ -170,16 +185,12 @@ class LowState_(IdlStruct, typename="unitree_hg.msg.dds_.LowState_"):
     crc: types.uint32
 
     def serialize(self, buffer=None, endianness=None, use_version_2=None) -> bytes:
-        if buffer is None and endianness is None and not use_version_2:
-            return _struct_to_cdr(lowstate_to_record(self).tobytes(), _LOWSTATE_MODE0)
-        return super().serialize(buffer=buffer, endianness=endianness, use_version_2=use_version_2)
+        return _serialize(self, LowState_, lowstate_to_record, _LOWSTATE_MODE0, buffer, endianness, use_version_2)
 
     @classmethod
     def deserialize(cls, data, has_header=True, use_version_2=None):
-        record = _cdr_to_record(data, LOWSTATE_DTYPE, _LOWSTATE_MODE0) if has_header and not use_version_2 else None
-        if record is None:
-            return super().deserialize(data, has_header=has_header, use_version_2=use_version_2)
-        return record_to_lowstate(record)
+        return _deserialize(LowState_, data, LOWSTATE_DTYPE, _LOWSTATE_MODE0, record_to_lowstate, has_header,
+                            use_version_2)
 
 
 _MOTOR_CMD_FIELDS = MOTOR_CMD_DTYPE.names

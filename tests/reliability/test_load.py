@@ -7,7 +7,7 @@
     deadlines kept over the flood (the service's own ``deadline_misses`` in
     :class:`~shared.messages.SafetyStatus`, against its ticks counted by the commands' ``seq``),
     beside the machine's own wake-up latency measured just before (``machine_wake``:
-    :func:`bench.common.wake_latency`), and the newest state used within
+    :func:`tests.support.machine.wake_latency`), and the newest state used within
     :data:`NEWEST_MAX_PERIODS` control periods of wall time (``newest_within_ms``). Behaviour: the
     service lives through it and uses the newest state: after each burst, one of the first
     :data:`NEWEST_MAX_PERIODS` :class:`~shared.messages.JointCommand` s the service publishes after
@@ -42,21 +42,22 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
+import pytest
 
-from bench.codec import human_state
-from bench.common import wake_latency
-from bench.reliability import CheckResult
 from safemimic.launch import Child, free_port, launch, stop_all
 from shared.bus import Bus
 from shared.config import BusConfig
-from shared.messages import JointCommand, SafetyStatus
+from tests.reliability.check import Check, CheckResult
+from tests.support.bus import BusRecorder
+from tests.support.machine import wake_latency
+from tests.support.messages import human_state
 
 #: The safety service's control rate under test (Hz).
 SAFETY_RATE_HZ = 500.0
@@ -245,32 +246,13 @@ def publish_flood(endpoint: str, robot_id: str, plan: FloodPlan, conn: Connectio
         conn.send(FloodSent(start, time.monotonic(), message.seq + 1, bursts))
 
 
-@dataclass
-class SafetyRecorder:
-    """The commands ``(stamp, seq, human_seq)`` and statuses ``(stamp, deadline_misses)`` received."""
-
-    commands: list[tuple[float, int, int | None]] = field(default_factory=list)
-    statuses: list[tuple[float, int]] = field(default_factory=list)
-    lock: threading.Lock = field(default_factory=threading.Lock)
-
-    def attach(self, bus: Bus) -> None:
-        bus.subscribe("robot/command", self.on_command)
-        bus.subscribe("safety/status", self.on_status)
-
-    def on_command(self, message: JointCommand) -> None:
-        with self.lock:
-            self.commands.append((message.stamp, message.seq, message.human_seq))
-
-    def on_status(self, message: SafetyStatus) -> None:
-        with self.lock:
-            self.statuses.append((message.stamp, message.deadline_misses))
-
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
-        """Commands as an (n, 3) array (human_seq −1 when none), statuses as (m, 2), in stamp order."""
-        with self.lock:
-            commands = np.array([(s, q, -1 if h is None else h) for s, q, h in self.commands], dtype=float)
-            statuses = np.array(self.statuses, dtype=float)
-        return commands[np.argsort(commands[:, 0])], statuses[np.argsort(statuses[:, 0])]
+def flood_record(recorder: BusRecorder) -> tuple[np.ndarray, np.ndarray]:
+    """The commands as an (n, 3) array ``(stamp, seq, human_seq)`` (human_seq −1 when none) and the
+    statuses as (m, 2) ``(stamp, deadline_misses)``, in stamp order."""
+    commands = np.array([(c.stamp, c.seq, -1 if c.human_seq is None else c.human_seq)
+                         for c in recorder.between("robot/command")], dtype=float)
+    statuses = np.array([(s.stamp, s.deadline_misses) for s in recorder.between("safety/status")], dtype=float)
+    return commands[np.argsort(commands[:, 0])], statuses[np.argsort(statuses[:, 0])]
 
 
 def deadlines_kept(commands: np.ndarray, statuses: np.ndarray, start: float, end: float) -> dict[str, Any]:
@@ -304,20 +286,19 @@ def newest_lag(commands: np.ndarray, bursts: list[tuple[int, float]], period: fl
             "period_ms": period * 1e3}
 
 
-def human_state_flood(seconds: float) -> CheckResult:
-    """The safety service under a flood of human states: deadlines kept, newest state used."""
+def human_state_flood(seconds: float, wake: dict[str, Any]) -> CheckResult:
+    """The safety service under a flood of human states: deadlines kept, newest state used
+    (``wake``: :func:`~tests.support.machine.wake_latency` just before, reported beside them)."""
     load_before = load_avg()
-    wake = wake_latency()  # can this machine keep a 500 Hz loop's time at all, right now?
     plan = FloodPlan(NORMAL_HUMAN_HZ * FLOOD_FACTOR, seconds, BURST_SIZE, BURST_EVERY_S)
     endpoint, robot_id = _endpoint(), f"load{free_port()}"
-    recorder = SafetyRecorder()
     with _services({"safety": _safety_command(endpoint, robot_id)}) as children:
         with _open_bus(endpoint, robot_id, "load_probe", children) as bus:
-            recorder.attach(bus)
-            _wait(lambda: len(recorder.commands) > SAFETY_RATE_HZ, "1 s of commands from the safety service", children)
+            recorder = BusRecorder(bus, ("robot/command", "safety/status"))
+            _wait(lambda: recorder.count("robot/command") > SAFETY_RATE_HZ, "1 s of commands from the safety service", children)
             sent: FloodSent = _in_process(publish_flood, endpoint, robot_id, plan, timeout_s=STARTUP_TIMEOUT_S + seconds)
             time.sleep(0.2)  # the statuses after the flood's end
-            commands, statuses = recorder.snapshot()
+            commands, statuses = flood_record(recorder)
         exit_codes = stop_all(children)
         summary = _safety_summary(children[0])
     kept = deadlines_kept(commands, statuses, sent.start, sent.end)
@@ -455,6 +436,17 @@ def config_api_load(seconds: float) -> CheckResult:
     })
 
 
-def run(quick: bool = False) -> list[CheckResult]:
-    """Both load checks (quick: 3 s each instead of 10 s)."""
-    return [human_state_flood(FLOOD_QUICK_S if quick else FLOOD_S), config_api_load(API_QUICK_S if quick else API_S)]
+@pytest.fixture(scope="module")
+def machine_wake() -> dict[str, Any]:
+    """Can this machine keep a 500 Hz loop's time at all, right now (measured just before the flood)?"""
+    return wake_latency()
+
+
+@pytest.mark.integration
+def test_human_state_flood(machine_wake: dict[str, Any], long_run: bool, check: Check) -> None:
+    check(human_state_flood(FLOOD_S if long_run else FLOOD_QUICK_S, machine_wake), budgets=machine_wake["keeps_time"])
+
+
+@pytest.mark.integration
+def test_config_api_load(machine_wake: dict[str, Any], long_run: bool, check: Check) -> None:
+    check(config_api_load(API_S if long_run else API_QUICK_S), budgets=machine_wake["keeps_time"])

@@ -1,4 +1,4 @@
-"""Reliability group ``fuzz`` (bad input): hostile messages never crash a service, are all
+"""Bad input, a test per check: hostile messages never crash a service, are all
 counted, and never reach the QP; glitching keypoints leave the robot safe.
 
 Everything runs the real code, in this process, with no mocks:
@@ -55,8 +55,8 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import pytest
 
-from bench.reliability import CheckResult
 from safemimic.launch import free_port
 from services.config_api.link import BusLink
 from safemimic.evaluate.episode import MODES, run_episode
@@ -72,7 +72,7 @@ from services.safety.filter import VIOLATION_TOL
 from services.safety.assembly import build_pipeline
 from services.safety.human_memory import external_capsules
 from services.safety.service import SafetyService
-from shared.bus import TOPICS, Bus, topic_key
+from shared.bus import TOPICS, Bus
 from shared.codec import (
     MAX_MESSAGE_BYTES,
     CodecError,
@@ -84,16 +84,10 @@ from shared.codec import (
     encode,
 )
 from shared.config import BusConfig, StackConfig, load_config
-from shared.messages import (
-    MESSAGE_TYPES,
-    ConfigUpdate,
-    HumanState,
-    JointCommand,
-    JointState,
-    Message,
-    SafetyMode,
-    SafetyStatus,
-)
+from shared.messages import MESSAGE_TYPES, ConfigUpdate, HumanState, Message
+from tests.reliability.check import Check, CheckResult
+from tests.support.bus import BusRecorder, await_route
+from tests.support.messages import random_message
 
 #: Payload kinds that every decoder must refuse; ``wrong_frame`` applies to HumanState only and
 #: ``invalid_config`` (a well-formed ConfigUpdate whose configuration does not validate) to the
@@ -196,36 +190,8 @@ class Hostile:
 
     # valid -----------------------------------------------------------------------------------
     def message(self, cls: type[Message], stamp: float = 0.0, seq: int = 0, source: str = "") -> Message:
-        """A random valid message of ``cls`` (finite, in range; a ConfigUpdate carries a valid configuration)."""
-        r = self.rng
-        common: dict[str, Any] = {"stamp": stamp, "seq": seq, "source": source}
-        if cls is HumanState:
-            return HumanState(
-                **common, keypoints=r.normal([0.8, 0.0, 1.1], 0.4, (15, 3)), keypoint_valid=r.random(15) > 0.1,
-                theta=r.uniform(-math.pi, math.pi, 8), theta_valid=r.random(8) > 0.1,
-                capsules=r.normal([0.8, 0.0, 1.0], 0.4, (7, 2, 3)), capsule_radii=r.uniform(0.02, 0.2, 7),
-                capsule_valid=r.random(7) > 0.1,
-                capsule_velocities=r.normal(0.0, 0.5, (7, 2, 3)) if r.random() < 0.5 else None,
-                capture_stamp=stamp - 0.03 if r.random() < 0.5 else None,
-            )
-        if cls is JointState:
-            return JointState(**common, q=r.uniform(-0.5, 0.5, 8), dq=r.normal(0.0, 0.5, 8),
-                              q_command=r.uniform(-0.5, 0.5, 8) if r.random() < 0.5 else None,
-                              command_stale=bool(r.random() < 0.2))
-        if cls is JointCommand:
-            return JointCommand(**common, q=r.uniform(-0.5, 0.5, 8), dq=r.normal(0.0, 0.5, 8),
-                                mode=self.pick(list(SafetyMode)), human_stamp=stamp - 0.02, human_seq=int(r.integers(0, 2**40)))
-        if cls is SafetyStatus:
-            return SafetyStatus(
-                **common, mode=self.pick(list(SafetyMode)), min_h_self=float(r.normal(0.1, 0.1)),
-                min_h_human=float(r.normal(0.3, 0.3)) if r.random() < 0.7 else None,
-                active_constraints=int(r.integers(0, 72)), total_constraints=int(r.integers(0, 200)),
-                qp_solve_time_ms=float(r.uniform(0, 1)), step_time_ms=float(r.uniform(0, 2)),
-                dropped={"human/state": int(r.integers(0, 1000))}, config_version=int(r.integers(0, 2**31)),
-            )
-        if cls is ConfigUpdate:
-            return ConfigUpdate(**common, version=int(r.integers(1, 2**31)), changed=["safety.gamma"], config=self.valid_config())
-        raise TypeError(f"no factory for {cls.__name__}")
+        """A random valid message of ``cls`` (a ConfigUpdate carries :meth:`valid_config`)."""
+        return random_message(cls, self.rng, self.valid_config, stamp=stamp, seq=seq, source=source)
 
     def valid_config(self) -> dict[str, Any]:
         """The base configuration with parameters every service applies in place changed at random
@@ -543,7 +509,7 @@ class TargetOutcome:
 def fuzz_target(target: Target, stream: Stream, injector: Bus, n: int, burst: int) -> TargetOutcome:
     """Send ``n`` payloads to ``target`` in bursts; after each, wait for it to settle and check the counts."""
     out = TargetOutcome()
-    _await_route(injector, target.topic)
+    await_route(injector, target.topic)
     refused0 = target.refused()
     accepted0 = target.accepted() if target.accepted else 0
     superseded0 = target.superseded() if target.superseded else 0
@@ -634,19 +600,6 @@ def _endpoints(robot_id: str, service: str) -> Iterator[tuple[Bus, Bus]]:
         yield bus, injector
 
 
-def _await_route(injector: Bus, topic: str, timeout_s: float = 10.0) -> None:
-    """Wait until the injector's session knows a subscriber of ``topic`` (samples put before are lost)."""
-    probe = injector.session.declare_publisher(topic_key(injector.robot_id, topic))
-    try:
-        deadline = time.monotonic() + timeout_s
-        while not probe.matching_status.matching:
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"no subscriber of {topic} reachable from the fuzz session")
-            time.sleep(0.01)
-    finally:
-        probe.undeclare()
-
-
 def _stack(robot_id: str) -> StackConfig:
     return load_config(environ={}, overrides={"robot_id": robot_id, "bus": {"multicast_scouting": False}})
 
@@ -673,7 +626,7 @@ def fuzz_safety(budget: Budget, hostile: Hostile) -> CheckResult:
     """The safety service's human state, joint state and config subscribers, its tick run throughout."""
     robot_id = f"fuzzsafety{free_port()}"
     with _endpoints(robot_id, "safety") as (bus, injector):
-        commands = _CommandLog(injector)
+        commands = BusRecorder(injector, ("robot/command",))
         with SafetyService(_stack(robot_id), bus=bus) as svc:
 
             def refused(topic: str) -> Callable[[], int]:
@@ -697,43 +650,31 @@ def fuzz_safety(budget: Budget, hostile: Hostile) -> CheckResult:
                 Target("safety config", "config", refused("config"), config_applied, tick),
             ]
             outcomes = _run_targets(targets, hostile, injector, budget)
-            extra = commands.problems(svc)
-            figures = {"ticks": svc.ticks, "nonfinite_holds": svc.nonfinite_holds, "commands_observed": commands.count,
+            extra = _command_problems(commands, svc)
+            figures = {"ticks": svc.ticks, "nonfinite_holds": svc.nonfinite_holds, "commands_observed": commands.count("robot/command"),
                        "status_dropped": svc.dropped()}
             if svc.nonfinite_holds:
                 extra.append(f"{svc.nonfinite_holds} non-finite commands replaced")
     return _service_result("fuzz_safety_subscribers", outcomes, extra, figures)
 
 
-class _CommandLog:
-    """The injector's view of ``robot/command``: how many arrived, the last one (a non-finite
-    command would be refused by this session's decoder and show in its drop count)."""
-
-    def __init__(self, bus: Bus) -> None:
-        self.bus = bus
-        self.count = 0
-        self.last: JointCommand | None = None
-        bus.subscribe("robot/command", self._on_command)
-
-    def _on_command(self, message: Message) -> None:
-        assert isinstance(message, JointCommand)
-        self.count += 1
-        self.last = message
-
-    def problems(self, svc: SafetyService) -> list[str]:
-        """Every command decoded and finite, and the newest one built from the held human state."""
-        held = svc.human.get()
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline and not (self.last is not None and held is not None
-                                                   and self.last.human_seq == held.message.seq):
-            svc.tick()
-            time.sleep(0.005)
-        out = [f"{n} commands refused by a receiver" for n in (self.bus.dropped["robot/command"],) if n]
-        if self.count == 0 or self.last is None:
-            out.append("no command observed")
-        elif held is None or (self.last.human_seq, self.last.human_stamp) != (held.message.seq, held.message.stamp):
-            out.append("the newest command does not use the last valid human state")
-        return out
+def _command_problems(commands: BusRecorder, svc: SafetyService) -> list[str]:
+    """Every command ``commands`` (the injector's view of ``robot/command``) saw decoded and finite (a
+    non-finite one would be refused by its decoder and show in its drop count), and the newest one
+    built from the held human state."""
+    held = svc.human.get()
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and not ((last := commands.last("robot/command")) is not None and held is not None
+                                               and last.human_seq == held.message.seq):
+        svc.tick()
+        time.sleep(0.005)
+    last = commands.last("robot/command")
+    out = [f"{n} commands refused by a receiver" for n in (commands.bus.dropped["robot/command"],) if n]
+    if last is None:
+        out.append("no command observed")
+    elif held is None or (last.human_seq, last.human_stamp) != (held.message.seq, held.message.stamp):
+        out.append("the newest command does not use the last valid human state")
+    return out
 
 
 def fuzz_executor(budget: Budget, hostile: Hostile) -> CheckResult:
@@ -940,16 +881,67 @@ def _quiet_services() -> Iterator[None]:
             logger.setLevel(level)
 
 
-def run(quick: bool = False) -> list[CheckResult]:
-    """The fuzz checks, full (≥ 100,000 messages, a few minutes) or quick (a few thousand, seconds)."""
-    budget = QUICK if quick else FULL
-    config = load_config(environ={}).model_dump(mode="json")
-    results = [fuzz_codec(budget.codec, seed=1, config={name: config[name] for name in ("safety", "human")})]
-    with _quiet_services():
-        for check, seed in ((fuzz_safety, 2), (fuzz_executor, 3), (fuzz_perception, 4), (fuzz_config_api, 5)):
-            results.append(check(budget, Hostile(seed, config)))
-    results.append(fuzz_keypoint_glitches(budget, seed=6))
-    sent = sum(r.figures.get("messages", 0) for r in results)
-    required = sum(budget.per_target.values()) + budget.codec if quick else REQUIRED_MESSAGES
-    results.append(CheckResult("fuzz_messages", sent >= required, {"messages": sent, "required": required}))
-    return results
+class Fuzzed:
+    """The fuzz checks of one budget, each run once when a test first asks for its result."""
+
+    def __init__(self, budget: Budget) -> None:
+        self.budget = budget
+        self._config = load_config(environ={}).model_dump(mode="json")
+        self._results: dict[str, CheckResult] = {}
+
+    def _run(self, name: str) -> CheckResult:
+        budget, config = self.budget, self._config
+        if name == "fuzz_codec":
+            return fuzz_codec(budget.codec, seed=1, config={section: config[section] for section in ("safety", "human")})
+        if name == "fuzz_keypoint_glitches":
+            return fuzz_keypoint_glitches(budget, seed=6)
+        fuzz, seed = SUBSCRIBER_CHECKS[name]
+        with _quiet_services():
+            return fuzz(budget, Hostile(seed, config))
+
+    def result(self, name: str) -> CheckResult:
+        if name not in self._results:
+            self._results[name] = self._run(name)
+        return self._results[name]
+
+    def messages(self) -> CheckResult:
+        """``fuzz_messages``: the hostile messages sent by the codec and subscriber checks, against the
+        budget's (the full run: at least :data:`REQUIRED_MESSAGES`)."""
+        sent = sum(self.result(name).figures["messages"] for name in ("fuzz_codec", *SUBSCRIBER_CHECKS))
+        quick = self.budget is QUICK
+        required = sum(self.budget.per_target.values()) + self.budget.codec if quick else REQUIRED_MESSAGES
+        return CheckResult("fuzz_messages", sent >= required, {"messages": sent, "required": required})
+
+
+#: check name → (the check, its seed) for the services' subscribers.
+SUBSCRIBER_CHECKS: dict[str, tuple[Callable[[Budget, Hostile], CheckResult], int]] = {
+    "fuzz_safety_subscribers": (fuzz_safety, 2),
+    "fuzz_executor_subscribers": (fuzz_executor, 3),
+    "fuzz_perception_subscribers": (fuzz_perception, 4),
+    "fuzz_config_api_subscribers": (fuzz_config_api, 5),
+}
+
+
+@pytest.fixture(scope="module")
+def fuzzed(long_run: bool) -> Fuzzed:
+    """Full (≥ 100,000 messages, a few minutes) in the long run, quick (a few thousand, seconds) otherwise."""
+    return Fuzzed(FULL if long_run else QUICK)
+
+
+def test_fuzz_codec(fuzzed: Fuzzed, check: Check) -> None:
+    check(fuzzed.result("fuzz_codec"))
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("name", SUBSCRIBER_CHECKS)
+def test_fuzz_subscribers(name: str, fuzzed: Fuzzed, check: Check) -> None:
+    check(fuzzed.result(name))
+
+
+def test_fuzz_keypoint_glitches(fuzzed: Fuzzed, check: Check) -> None:
+    check(fuzzed.result("fuzz_keypoint_glitches"))
+
+
+@pytest.mark.integration
+def test_fuzz_messages(fuzzed: Fuzzed, check: Check) -> None:
+    check(fuzzed.messages())

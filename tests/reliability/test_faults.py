@@ -1,4 +1,5 @@
-"""Faults: kill -9 each service, the Zenoh router, and the config API mid-write.
+"""Faults: kill -9 each service, the Zenoh router, and the config API mid-write (a test per check;
+the stack's checks share one run of the stack).
 
 Stack checks run the simulated stack the way ``safemimic demo`` does (:mod:`safemimic.stack`'s
 command lines, :mod:`safemimic.launch`'s children: router, executor, safety, perception looping
@@ -32,7 +33,6 @@ version or the one in flight (never anything else), and the next open must leave
 
 from __future__ import annotations
 
-import bisect
 import multiprocessing
 import os
 import random
@@ -43,7 +43,6 @@ import socket
 import tempfile
 import threading
 import time
-from collections import defaultdict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -52,8 +51,8 @@ from typing import Any
 
 import httpx
 import numpy as np
+import pytest
 
-from bench.reliability import CheckResult
 from safemimic.certs import make_stack
 from safemimic.launch import Child, free_port, kill, launch, stop_all
 from safemimic.stack import SERVICE_BY_NAME, SERVICES, Site, command, router_command, write_paper_scenarios
@@ -61,7 +60,9 @@ from services.config_api.store import ConfigStore, stale_temporaries
 from services.config_api.token import TOKEN_ENV
 from shared.bus import Bus
 from shared.config import BusMode, StackConfig, TlsConfig, load_config
-from shared.messages import JointCommand, SafetyStatus
+from shared.messages import JointCommand, Message
+from tests.reliability.check import Check, CheckResult
+from tests.support.bus import BusRecorder
 
 #: A restarted service must be back (token and data) this long after its restart command (s).
 RESUME_BOUND_S = 2.0
@@ -153,76 +154,33 @@ class _CommandLimits:
                 "rate_violations": sum(ratio > self.threshold for ratio in ratios)}
 
 
-class Recorder:
-    """Every command, joint state, human state, status and liveliness change on the bus, timed."""
+class Recorder(BusRecorder):
+    """This process's own client of the router (the viewer's certificate: it can only look): every
+    command, joint state, human state, status and liveliness change on the bus, timed, and the
+    command stream's limits followed as it comes."""
 
     def __init__(self, conf: StackConfig, router: str, certs: Path) -> None:
         safety = conf.safety
         dt = 1.0 / safety.rate_hz
         u_max = np.asarray(safety.u_max, dtype=np.float64)
         u_min = -u_max if safety.u_min is None else np.asarray(safety.u_min, dtype=np.float64)
-        self.lock = threading.Lock()
         self.limits = _CommandLimits(step_hi=u_max * dt, step_lo=u_min * dt)
-        self.arrivals: dict[str, list[float]] = defaultdict(list)
-        self.stale_statuses: list[float] = []
-        self.alive: dict[str, bool] = {}
-        self.alive_events: list[tuple[float, str, bool]] = []
         bus_conf = conf.bus.model_copy(update={"mode": BusMode.CLIENT, "connect": [router], "listen": [],
                                               "multicast_scouting": False,
                                               "tls": TlsConfig(dir=str(certs), identity="viewer")})
-        self.bus = Bus(bus_conf, conf.robot_id, "faults")
-        for topic in WATCHED_TOPICS:
-            self.bus.subscribe(topic, self._on(topic))
-        self.bus.watch_alive(self._on_alive)
+        super().__init__(Bus(bus_conf, conf.robot_id, "faults"), WATCHED_TOPICS, alive=True, on_message=self._follow)
 
     def close(self) -> None:
         self.bus.close()
 
-    def _on(self, topic: str) -> Callable[[Any], None]:
-        def record(message: Any) -> None:
-            now = time.monotonic()
-            with self.lock:
-                self.arrivals[topic].append(now)
-                if isinstance(message, JointCommand):
-                    self.limits.add(now, message)
-                elif isinstance(message, SafetyStatus) and message.human_stale:
-                    self.stale_statuses.append(now)
-
-        return record
-
-    def _on_alive(self, service: str, up: bool) -> None:
-        with self.lock:
-            self.alive[service] = up
-            self.alive_events.append((time.monotonic(), service, up))
-
-    # questions about what was recorded -------------------------------------------------------
-    def is_alive(self, token: str) -> bool:
-        with self.lock:
-            return bool(self.alive.get(token))
-
-    def first_after(self, topic: str, t: float) -> float | None:
-        """When the first message on ``topic`` after ``t`` arrived."""
-        with self.lock:
-            arrivals = self.arrivals[topic]
-            i = bisect.bisect_right(arrivals, t)
-            return arrivals[i] if i < len(arrivals) else None
-
-    def token_event_after(self, token: str, up: bool, t: float) -> float | None:
-        """When ``token`` was first seen up (or gone) after ``t``, and still is if ``up``."""
-        with self.lock:
-            if up and not self.alive.get(token):
-                return None
-            return next((when for when, name, state in self.alive_events if when > t and name == token and state == up), None)
-
-    def max_gap(self, topic: str, t0: float, t1: float) -> float:
-        """The longest stretch of [t0, t1] without a message on ``topic`` (s)."""
-        with self.lock:
-            times = [t0, *(a for a in self.arrivals[topic] if t0 < a < t1), t1]
-        return float(np.max(np.diff(times)))
+    def _follow(self, topic: str, now: float, message: Message) -> None:
+        if isinstance(message, JointCommand):
+            self.limits.add(now, message)
 
     def stale_between(self, t0: float, t1: float) -> bool:
-        with self.lock:
-            return any(t0 < t < t1 for t in self.stale_statuses)
+        """Whether a status arrived in (t0, t1) showing the human state stale."""
+        at = self.first_after("safety/status", t0, lambda status: status.human_stale)
+        return at is not None and at < t1
 
     def invalid_commands(self) -> int:
         """Command payloads that failed to decode or validate (e.g. a NaN the codec refused); the
@@ -485,15 +443,7 @@ def _router_behaved(rounds: list[dict[str, Any]]) -> bool:
                and r["rate_violations"] == 0 for r in rounds)
 
 
-def stack_checks(rounds: int) -> list[CheckResult]:
-    """``kill9_<service>`` for each service, ``router_restart`` and ``command_limits`` (``rounds`` kills each)."""
-    try:
-        return _stack_checks(load_config(), rounds)
-    except StackStartError as exc:  # nothing to kill
-        return [CheckResult("faults_stack_start", False, {"error": str(exc)[-3000:]})]
-
-
-def _stack_checks(conf: StackConfig, rounds: int) -> list[CheckResult]:
+def stack_checks(conf: StackConfig, rounds: int) -> list[CheckResult]:
     """Start the stack, kill every service ``rounds`` times, then the router; the checks' results."""
     per_service: dict[str, list[dict[str, Any]]] = {spec.name: [] for spec in SERVICES}
     per_router: list[dict[str, Any]] = []
@@ -615,6 +565,32 @@ def config_write_kill(kills: int) -> CheckResult:
     return CheckResult("config_write_kill", not failures and done == kills and temps_at_end == 0, figures)
 
 
-def run(quick: bool = False) -> list[CheckResult]:
-    """Quick: one kill per service and of the router, 10 write kills; full: 2 each and 100 write kills."""
-    return [config_write_kill(10 if quick else 100), *stack_checks(1 if quick else 2)]
+@pytest.fixture(scope="module")
+def stack_results(long_run: bool) -> dict[str, CheckResult]:
+    """One stack run for its checks, by name: one kill of each service and of the router (long: two).
+    A stack that does not come up (:class:`StackStartError`, with the end of every log) errors each
+    of its tests."""
+    return {result.name: result for result in stack_checks(load_config(), 2 if long_run else 1)}
+
+
+@pytest.mark.integration
+def test_config_write_kill(long_run: bool, check: Check) -> None:
+    check(config_write_kill(100 if long_run else 10))
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("service", [spec.name for spec in SERVICES])
+def test_kill9(service: str, stack_results: dict[str, CheckResult], check: Check) -> None:
+    """The restart budget is held in the long run only: in the quick one it is printed (a restart
+    is mostly the interpreter's start-up CPU time, ``start_cpu_s``, which measures the machine)."""
+    check(stack_results[f"kill9_{service}"], budgets=False)
+
+
+@pytest.mark.integration
+def test_router_restart(stack_results: dict[str, CheckResult], check: Check) -> None:
+    check(stack_results["router_restart"], budgets=False)
+
+
+@pytest.mark.integration
+def test_command_limits(stack_results: dict[str, CheckResult], check: Check) -> None:
+    check(stack_results["command_limits"])

@@ -1,11 +1,13 @@
-"""How a reliability check reports: behaviour and timing budgets, and the machine's wake-up probe."""
+"""How a reliability check reports: behaviour and timing budgets, the report ``make reliability``
+writes, and the machine's wake-up probe."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
-from bench.common import WAKE_MAX_MS, WAKE_P99_MAX_MS, wake_latency
-from bench.reliability import CheckResult
+from tests.reliability.check import CheckResult, write_report
+from tests.support.machine import WAKE_MAX_MS, WAKE_P99_MAX_MS, wake_latency
 
 
 def test_a_check_passes_only_when_it_behaved_and_met_every_budget() -> None:
@@ -22,6 +24,23 @@ def test_a_check_passes_only_when_it_behaved_and_met_every_budget() -> None:
     row = json.loads(json.dumps(slow.to_json()))
     assert row == {"name": "kill9_safety", "passed": False, "behaved": True,
                    "budgets": {"resume_within_2s": False}, "max_resume_s": 2.4}
+
+
+def test_the_report_lists_every_check_and_passes_only_when_all_did(tmp_path: Path) -> None:
+    fine = CheckResult("fuzz_codec", True, {"messages": 10})
+    slow = CheckResult("kill9_safety", True, {"max_resume_s": 2.4}, {"resume_within_2s": False})
+    path = tmp_path / "results" / "reliability.json"
+    write_report([fine], path, long=True, duration_s=12.34, all_tests_passed=True)
+    report = json.loads(path.read_text())
+    assert set(report) == {"checks", "passed", "quick", "duration_s", "machine", "time"}
+    assert report["checks"] == [fine.to_json()] and report["passed"] and not report["quick"]
+    assert report["duration_s"] == 12.3 and report["machine"]["cores"]
+    write_report([fine, slow], path, long=True, duration_s=1.0, all_tests_passed=True)
+    assert not json.loads(path.read_text())["passed"]  # a missed budget
+    write_report([fine], path, long=False, duration_s=1.0, all_tests_passed=False)
+    assert not json.loads(path.read_text())["passed"]  # a check that raised has no result
+    write_report([], path, long=False, duration_s=1.0, all_tests_passed=True)
+    assert not json.loads(path.read_text())["passed"]  # nothing ran
 
 
 def test_wake_latency_measures_lateness_and_says_whether_the_machine_keeps_time() -> None:

@@ -1,4 +1,4 @@
-"""Watchdogs and rate limits on a running stack, in one process.
+"""Watchdogs and rate limits on a running stack, in one process (one drive, four checks: a test each).
 
 The executor (MuJoCo), the safety service (500 Hz) and perception (a scripted person beside the
 robot, looping) run in threads, each with its own Zenoh session, as clients of a router session
@@ -26,14 +26,14 @@ from __future__ import annotations
 import tempfile
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
-from bench.reliability import CheckResult
 from safemimic.certs import make_stack
 from safemimic.launch import free_port
 from services.executor.service import ExecutorService
@@ -42,46 +42,13 @@ from services.perception.sources import open_source
 from services.safety.service import SafetyService
 from shared.bus import Bus, router_config
 from shared.config import StackConfig, TlsConfig, load_config
-from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyStatus
+from shared.messages import ConfigUpdate, JointCommand
+from tests.reliability.check import Check, CheckResult
+from tests.support.bus import BusRecorder
 
 STARTUP_TIMEOUT_S = 60.0
 #: |u*| (rad/s, any joint) below which the robot counts as no longer imitating
 STILL_SPEED = 0.05
-
-
-@dataclass
-class Recorder:
-    """Everything the router session sees, with local arrival times (monotonic s)."""
-
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    commands: list[tuple[float, JointCommand]] = field(default_factory=list)
-    states: list[tuple[float, JointState]] = field(default_factory=list)
-    statuses: list[tuple[float, SafetyStatus]] = field(default_factory=list)
-    human: HumanState | None = None
-
-    def sink(self, into: list) -> Callable[[Any], None]:
-        def record(message: Any) -> None:
-            with self.lock:
-                into.append((time.monotonic(), message))
-        return record
-
-    def on_human(self, message: HumanState) -> None:
-        self.human = message
-
-    def between(self, into: list, start: float, end: float = float("inf")) -> list:
-        """The messages of ``into`` that arrived in [start, end]."""
-        with self.lock:
-            return [m for t, m in into if start <= t <= end]
-
-    def timed(self, into: list) -> list:
-        """(arrival time, message) pairs of ``into``."""
-        with self.lock:
-            return list(into)
-
-    def first(self, into: list, start: float, predicate: Callable[[Any], bool]) -> float:
-        """Arrival time of the first message of ``into`` after ``start`` for which ``predicate`` holds (NaN: none)."""
-        with self.lock:
-            return next((t for t, m in into if t >= start and predicate(m)), float("nan"))
 
 
 class Running:
@@ -132,25 +99,29 @@ def rate_limit_ratios(commands: list[JointCommand], u_max: np.ndarray, periods: 
     return (np.abs(np.diff(q, axis=0)) / (u_max * (periods * ticks)[:, None])).max(axis=1)
 
 
-def run(quick: bool = False) -> list[CheckResult]:
-    """Drive the stack through changes, calibration and restarts; the four checks above."""
-    pause = 0.6 if quick else 1.5
+@dataclass(frozen=True)
+class Drive:
+    """What one drive through changes and restarts recorded, when each phase began, and the configuration."""
+
+    recorder: BusRecorder
+    marks: dict[str, float]
+    conf: StackConfig
+
+
+def drive(pause: float) -> Drive:
+    """Drive the stack through changes, calibration and restarts (``pause`` s between events)."""
     port = free_port()
     endpoint = f"tls/127.0.0.1:{port}"
     robot_id = f"rel{port}"
-    certs_dir = tempfile.TemporaryDirectory(prefix="safemimic-watchdogs-certs-")  # removed when run() returns
+    certs_dir = tempfile.TemporaryDirectory(prefix="safemimic-watchdogs-certs-")  # removed when drive() returns
     certs = Path(certs_dir.name)
     make_stack(certs, router_hosts=["127.0.0.1"])
     conf = stack_config(endpoint, robot_id, certs)
-    recorder = Recorder()
     marks: dict[str, float] = {}
     # the hub is the router itself: its own session (which publishes the config changes, as the
     # config API would) is local to the router; every service reaches it through the access control
     with Bus(router_config([endpoint], tls=TlsConfig(dir=str(certs))), robot_id, "router") as hub:
-        hub.subscribe("robot/command", recorder.sink(recorder.commands))
-        hub.subscribe("robot/joint_state", recorder.sink(recorder.states))
-        hub.subscribe("safety/status", recorder.sink(recorder.statuses))
-        hub.subscribe("human/state", recorder.on_human)
+        recorder = BusRecorder(hub, ("robot/command", "robot/joint_state", "safety/status", "human/state"))
         configs = hub.publisher("config")
         version = [0]
 
@@ -170,7 +141,7 @@ def run(quick: bool = False) -> list[CheckResult]:
         safety = Running(SafetyService(conf))
         perception = start_perception()
         try:
-            if not _wait(lambda: any(c.human_seq is not None for c in recorder.between(recorder.commands, 0)),
+            if not _wait(lambda: any(c.human_seq is not None for c in recorder.between("robot/command")),
                          STARTUP_TIMEOUT_S):
                 raise RuntimeError("the stack did not start imitating")
             time.sleep(pause)
@@ -184,7 +155,8 @@ def run(quick: bool = False) -> list[CheckResult]:
             change(safety={"pairs": "paper72"})
             change(retargeting={"mirror": True})
             change()
-            theta = recorder.human.theta.tolist() if recorder.human is not None else [0.1] * 8
+            human = recorder.last("human/state")
+            theta = human.theta.tolist() if human is not None else [0.1] * 8
             change(retargeting={"theta_home": theta})
             change()
             time.sleep(pause)
@@ -194,7 +166,7 @@ def run(quick: bool = False) -> list[CheckResult]:
             time.sleep(conf.safety.human_timeout_s + pause)
             marks["perception_up"] = time.monotonic()
             perception = start_perception()
-            _wait(lambda: any(not s.human_stale for s in recorder.between(recorder.statuses, marks["perception_up"])),
+            _wait(lambda: any(not s.human_stale for s in recorder.between("safety/status", marks["perception_up"])),
                   STARTUP_TIMEOUT_S)
             time.sleep(pause)
 
@@ -210,22 +182,23 @@ def run(quick: bool = False) -> list[CheckResult]:
             time.sleep(conf.executor.command_timeout_s + pause)
             marks["safety_up"] = time.monotonic()
             safety = Running(SafetyService(conf))
-            _wait(lambda: bool(recorder.between(recorder.commands, marks["safety_up"])), STARTUP_TIMEOUT_S)
+            _wait(lambda: bool(recorder.between("robot/command", marks["safety_up"])), STARTUP_TIMEOUT_S)
             time.sleep(pause)
             marks["end"] = time.monotonic()
         finally:
             for service in (perception, safety, executor):
                 service.stop()
-    return [
-        _rate_limit(recorder, marks, conf),
-        _watchdog_human(recorder, marks, conf),
-        _watchdog_joint_state(recorder, marks, conf),
-        _watchdog_executor_command(recorder, marks),
-    ]
+    return Drive(recorder, marks, conf)
 
 
-def _rate_limit(recorder: Recorder, marks: dict[str, float], conf: StackConfig) -> CheckResult:
-    timed = recorder.timed(recorder.commands)
+def _seconds_after(recorder: BusRecorder, start: float, predicate: Callable[[Any], bool]) -> float:
+    """Seconds from ``start`` to the first status after it satisfying ``predicate`` (NaN: none)."""
+    at = recorder.first_after("safety/status", start, predicate)
+    return float("nan") if at is None else at - start
+
+
+def _rate_limit(recorder: BusRecorder, marks: dict[str, float], conf: StackConfig) -> CheckResult:
+    timed = recorder.timed("robot/command")
     commands = [c for _, c in timed]
     finite = all(np.isfinite(c.q).all() and np.isfinite(c.dq).all() for c in commands)
     arrived = np.array([t for t, _ in timed[1:]])
@@ -243,29 +216,29 @@ def _rate_limit(recorder: Recorder, marks: dict[str, float], conf: StackConfig) 
     })
 
 
-def _watchdog_human(recorder: Recorder, marks: dict[str, float], conf: StackConfig) -> CheckResult:
+def _watchdog_human(recorder: BusRecorder, marks: dict[str, float], conf: StackConfig) -> CheckResult:
     down, up = marks["perception_down"], marks["perception_up"]
-    statuses = recorder.between(recorder.statuses, down, up)
+    statuses = recorder.between("safety/status", down, up)
     stale = [s for s in statuses if s.human_stale]
     trips = statuses[-1].watchdog_trips if statuses else {}
-    late = recorder.between(recorder.commands, down + conf.safety.human_timeout_s + 0.1, up)
+    late = recorder.between("robot/command", down + conf.safety.human_timeout_s + 0.1, up)
     speed = max((float(np.abs(c.dq).max()) for c in late), default=float("nan"))
-    after = recorder.between(recorder.statuses, up, marks["executor_down"])
+    after = recorder.between("safety/status", up, marks["executor_down"])
     recovered = bool(after) and not after[-1].human_stale
     passed = (any(s.human_source_lost for s in statuses) and bool(stale) and trips.get("human_source", 0) >= 1 and trips.get("human_state", 0) >= 1
               and speed <= STILL_SPEED and recovered)
-    lost_after = recorder.first(recorder.statuses, down, lambda s: s.human_source_lost) - down
+    lost_after = _seconds_after(recorder, down, lambda s: s.human_source_lost)
     return CheckResult("watchdog_human", passed, {
         "source_lost_after_s": round(lost_after, 3), "stale_statuses": len(stale), "trips": trips,
         "max_speed_while_stale": round(speed, 4), "recovered": recovered,
     })
 
 
-def _watchdog_joint_state(recorder: Recorder, marks: dict[str, float], conf: StackConfig) -> CheckResult:
+def _watchdog_joint_state(recorder: BusRecorder, marks: dict[str, float], conf: StackConfig) -> CheckResult:
     down, up = marks["executor_down"], marks["executor_up"]
-    stale_after = recorder.first(recorder.statuses, down, lambda s: s.joint_state_stale) - down
-    during = recorder.between(recorder.commands, down + 0.2, up)
-    statuses = recorder.between(recorder.statuses, up, marks["safety_down"])
+    stale_after = _seconds_after(recorder, down, lambda s: s.joint_state_stale)
+    during = recorder.between("robot/command", down + 0.2, up)
+    statuses = recorder.between("safety/status", up, marks["safety_down"])
     trips = statuses[-1].watchdog_trips if statuses else {}
     cleared = bool(statuses) and not statuses[-1].joint_state_stale and not statuses[-1].resyncing
     passed = (stale_after <= conf.safety.joint_state_timeout_s + 0.1 and len(during) > 50
@@ -276,11 +249,11 @@ def _watchdog_joint_state(recorder: Recorder, marks: dict[str, float], conf: Sta
     })
 
 
-def _watchdog_executor_command(recorder: Recorder, marks: dict[str, float]) -> CheckResult:
+def _watchdog_executor_command(recorder: BusRecorder, marks: dict[str, float]) -> CheckResult:
     down, up = marks["safety_down"], marks["safety_up"]
-    holding = [s for s in recorder.between(recorder.states, down, up) if s.command_stale]
+    holding = [s for s in recorder.between("robot/joint_state", down, up) if s.command_stale]
     held_motion = float(np.ptp([s.q_command for s in holding], axis=0).max()) if holding else float("nan")
-    statuses = recorder.between(recorder.statuses, up, marks["end"])
+    statuses = recorder.between("safety/status", up, marks["end"])
     shown = any(s.executor_holding for s in statuses)
     trips = statuses[-1].watchdog_trips if statuses else {}
     cleared = bool(statuses) and not statuses[-1].executor_holding
@@ -290,3 +263,28 @@ def _watchdog_executor_command(recorder: Recorder, marks: dict[str, float]) -> C
         "trips": trips, "cleared": cleared,
     })
 
+
+@pytest.fixture(scope="module")
+def driven(long_run: bool) -> Iterator[Drive]:
+    """One drive through changes and restarts for the four checks (pauses 0.6 s quick, 1.5 s long)."""
+    yield drive(1.5 if long_run else 0.6)
+
+
+@pytest.mark.integration
+def test_rate_limit(driven: Drive, check: Check) -> None:
+    check(_rate_limit(driven.recorder, driven.marks, driven.conf))
+
+
+@pytest.mark.integration
+def test_watchdog_human(driven: Drive, check: Check) -> None:
+    check(_watchdog_human(driven.recorder, driven.marks, driven.conf))
+
+
+@pytest.mark.integration
+def test_watchdog_joint_state(driven: Drive, check: Check) -> None:
+    check(_watchdog_joint_state(driven.recorder, driven.marks, driven.conf))
+
+
+@pytest.mark.integration
+def test_watchdog_executor_command(driven: Drive, check: Check) -> None:
+    check(_watchdog_executor_command(driven.recorder, driven.marks))
