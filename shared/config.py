@@ -159,6 +159,10 @@ class GeometryName(str, Enum):
     BOX = "box"
 
 
+PositiveJointVector = Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+NonNegativeJointVector = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+
+
 class SafetyConfig(_Section):
     """CBF-QP parameters (paper eqs. 3–9; architecture §4)."""
 
@@ -175,6 +179,15 @@ class SafetyConfig(_Section):
         "at the waist and 6–10 rad/s at the arms (a punch's elbow 25), so 10 follows ordinary fast arm motion "
         "(jumping jacks, punches but their peaks) unsaturated; the waist stays at 3 (it carries the upper body "
         "over the balance controller)",
+    )
+    accel_max: PositiveJointVector | None = Field(
+        default_factory=lambda: [10.0, 10.0, 60.0, 60.0, 250.0, 60.0, 60.0, 250.0],
+        description="|u − u_prev|/Δt bound per joint (rad/s²): the command changes speed no faster than the motors can "
+        "follow, so the robot stays on the path the barriers were computed for. About half of each G1 motor's torque "
+        "(Unitree: arms 25 N·m, waist 50 N·m) over the largest inertia its joint sees over the range (Pinocchio: "
+        "shoulder 0.21, elbow 0.044 kg·m²): shoulders 60, elbows 250; the waist a quarter of 50 N·m over 1.3 kg·m² "
+        "(it also takes the arms' reaction torques): 10. The bound gives way (widened step by step, reported as "
+        "'accel_max') only where no u within it keeps every hard row; null: no bound (the paper)",
     )
     feedforward: bool = Field(
         default=True,
@@ -230,10 +243,6 @@ class SafetyConfig(_Section):
         if min(self.u_max) <= 0:
             raise ValueError("u_max must all be > 0")
         return self
-
-
-PositiveJointVector = Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
-NonNegativeJointVector = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
 
 
 class ExecutorBackend(str, Enum):
@@ -345,6 +354,13 @@ class ExecutorConfig(_Section):
     hold_kd: float = Field(default=10.0, ge=0, description="servo damping of the joints held at home (N·m·s/rad)")
     gravity_compensation: bool = Field(
         default=True, description="simulation: the servos add the links' gravity torque (within their torque limits)"
+    )
+    torque_feedforward: bool = Field(
+        default=True,
+        description="simulation: the servos add the inverse dynamics of the commanded motion, M(q) q̈_ref + c(q, q̇) "
+        "(the command's acceleration through the joint-space inertia, and the Coriolis/centrifugal torques; gravity "
+        "is gravity_compensation's), so a PD servo follows an acceleration-bounded command instead of trailing it "
+        "by M q̈/kp; false: position + velocity feed-forward only",
     )
     stats_interval_s: float = Field(default=5.0, gt=0, le=3600, description="one-line summary this often (s)")
     backend: ExecutorBackend = Field(default=ExecutorBackend.MUJOCO, description="mujoco (simulation) | g1 (the real robot)")

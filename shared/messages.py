@@ -174,11 +174,21 @@ class SafetyMode(str, Enum):
 
 
 class JointCommand(Message):
-    """Safe joint target q_cbf (rad) and velocity u* (rad/s) for the 8 imitation joints (paper eq. 9)."""
+    """Safe joint target q_cbf (rad), velocity u* (rad/s) and acceleration (rad/s²) for the 8
+    imitation joints (paper eq. 9).
+
+    ``ddq`` = (u* − u*_prev)/Δt, bounded by ``safety.accel_max`` except where the bound gave way:
+    an executor feeds it forward through the robot's inertia (zero: velocity feed-forward only, the
+    default for a sender without it). Schema version 2 added it.
+    """
 
     SCHEMA_NAME: ClassVar[str] = "JointCommand"
+    SCHEMA_VERSION: ClassVar[int] = 2
     q: Array(N_JOINTS)
     dq: Array(N_JOINTS)
+    ddq: Array(N_JOINTS) = Field(
+        default_factory=lambda: np.zeros(N_JOINTS), description="commanded acceleration (rad/s²)"
+    )
     mode: SafetyMode = Field(default=SafetyMode.NOMINAL, strict=False)  # the wire carries the value
     human_stamp: float | None = Field(default=None, description="stamp of the HumanState used")
     human_seq: int | None = Field(default=None, ge=0)

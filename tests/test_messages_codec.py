@@ -66,7 +66,7 @@ ARRAY_FIELDS: dict[type[Message], dict[str, tuple[tuple[int, ...], np.dtype]]] =
         "capsule_velocities": ((7, 2, 3), F8),
     },
     JointState: {"q": ((8,), F8), "dq": ((8,), F8), "q_command": ((8,), F8)},
-    JointCommand: {"q": ((8,), F8), "dq": ((8,), F8)},
+    JointCommand: {"q": ((8,), F8), "dq": ((8,), F8), "ddq": ((8,), F8)},
     SafetyStatus: {},
     ConfigUpdate: {},
 }

@@ -14,6 +14,7 @@ from services.safety.assembly import build_pipeline
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.filter import RELAXED_TOL
+from services.safety.qp.box import velocity_box
 from shared.config import load_config
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
@@ -167,3 +168,94 @@ def test_joint_barrier_rows_are_a_barrier_kind() -> None:
                                       gamma=10.0, phi=0.02, lookahead=0.0)
     assert not block.soft.any() and (block.h > 0).all()  # home lies inside every joint barrier
     np.testing.assert_allclose(block.b, -10.0 * block.h)
+
+
+def test_the_acceleration_bound_holds_wherever_the_rows_allow_and_gives_way_only_to_keep_them() -> None:
+    """Tracking targets drawn anywhere in the joint range, no person: every step's u* changes by at
+    most accel_max·Δt unless ``accel_max`` is reported among what gave way; the self rows and
+    joint barriers hold at every step either way (the last box tried is the plain velocity box,
+    where u = 0 keeps them); ``ddq`` is (u* − u_prev)/Δt."""
+    p = pipeline_for()
+    p.barrier.set_external(None)
+    a = p.filter.params.accel_max
+    assert a is not None, "the default configuration bounds the acceleration"
+    rng = np.random.default_rng(7)
+    p.filter.reset(p.kinematics.q_home)
+    u_prev, bounded, gave = np.zeros(8), 0, 0
+    for step in range(3000):
+        if step % 150 == 0:
+            q_nom = rng.uniform(p.kinematics.q_min, p.kinematics.q_max)
+        q = p.filter.q_cbf.copy()
+        A, b, soft = stacked(p, q)
+        result = p.filter.step(q_nom, DT)
+        assert (A[~soft] @ result.u >= b[~soft] - 1e-6).all(), "a self row or joint barrier gave way"
+        if step:
+            np.testing.assert_allclose(result.ddq, (result.u - u_prev) / DT, atol=1e-9)
+            if "accel_max" in result.gave_way:
+                gave += 1
+            else:
+                assert (np.abs(result.u - u_prev) <= a * DT + 1e-9).all()
+                bounded += 1
+        u_prev = result.u
+    assert bounded > 0.95 * 3000, (bounded, gave)
+
+
+def test_after_a_reset_the_first_step_is_unbounded_and_its_acceleration_zero() -> None:
+    p = pipeline_for()
+    p.barrier.set_external(None)
+    p.filter.reset(p.kinematics.q_home)
+    q_nom = p.kinematics.q_home + 0.05
+    first = p.filter.step(q_nom, DT)
+    assert (np.abs(first.u) > p.filter.params.accel_max * DT).any()  # the velocity box alone
+    np.testing.assert_array_equal(first.ddq, np.zeros(8))
+    second = p.filter.step(q_nom, DT)
+    assert "accel_max" not in second.gave_way
+    assert (np.abs(second.u - first.u) <= p.filter.params.accel_max * DT + 1e-9).all()
+
+
+def test_a_joint_approaching_its_limit_brakes_in_time() -> None:
+    """The waist pitch driven at its limit: the bounded command slows down before it (never faster
+    than √(2 β a d) with d the distance left) and comes to rest at the limit without a jump."""
+    p = pipeline_for()
+    p.barrier.set_external(None)
+    a = p.filter.params.accel_max
+    waist = p.kinematics.joint_names.index("waist_pitch_joint")
+    p.filter.reset(p.kinematics.q_home)
+    previous = p.filter.step(p.kinematics.q_home, DT).u[waist]  # at rest: the bound applies from here
+    q_nom = p.kinematics.q_home.copy()
+    q_nom[waist] = p.kinematics.q_max[waist] + 1.0  # beyond the limit: imitation pulls through it
+    for _ in range(1500):
+        result = p.filter.step(q_nom, DT)
+        assert "accel_max" not in result.gave_way
+        assert abs(result.u[waist] - previous) <= a[waist] * DT + 1e-9
+        previous = result.u[waist]
+    assert p.filter.q_cbf[waist] == pytest.approx(p.kinematics.q_max[waist], abs=1e-3) and abs(previous) < 1e-3
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> None:
+    """The random intrusions above, but with the robot already moving at random speeds (u_prev):
+    the acceleration bound cannot always reach a retreat; the self rows and joint barriers still
+    hold; within the bound no person row closes faster than braking as hard as the bound allows
+    (A_i u ≥ min(b_i, 0, A_i ū), ū the bounded box's point nearest rest); when the bound gave way
+    it is named."""
+    p = pipeline_for()
+    rng = np.random.default_rng(seed)
+    gave = 0
+    for _ in range(30):
+        q = random_intrusion(p, rng)
+        A, b, soft = stacked(p, q)
+        p.filter.reset(q)
+        p.filter._u_prev = rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)  # noqa: SLF001 (the state a previous step leaves)
+        lower, upper = velocity_box(q, p.kinematics.q_min, p.kinematics.q_max, None, p.filter.params.u_max, DT)
+        bounded_lower, bounded_upper, _ = p.filter._boxes(q, lower, upper, DT)[0]  # noqa: SLF001
+        brake = np.clip(0.0, bounded_lower, bounded_upper)
+        result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT)
+        lhs = A @ result.u
+        assert result.mode is not SafetyMode.HOLD and np.isfinite(result.u).all()
+        assert (lhs[~soft] >= b[~soft] - 1e-6).all()
+        if "accel_max" in result.gave_way:
+            gave += 1
+        else:
+            assert (lhs[soft] >= np.minimum(np.minimum(b[soft], 0.0), A[soft] @ brake) - 1e-6).all()
+    assert gave > 0, "some intrusion must need more than the acceleration bound"

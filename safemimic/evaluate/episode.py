@@ -175,7 +175,7 @@ def run_episode(
             result = safety.filter.step(safety.filter.q_cbf.copy(), dt)
         else:
             result = safety.filter.step(q_nom, dt, dq_nom if feedforward else None)
-        executor.apply_command(result.q_cbf, result.u)
+        executor.apply_command(result.q_cbf, result.u, result.ddq)
         executor.tick()
 
         touching = sim.surface_contacts(TRUE_PERSON)

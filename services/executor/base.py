@@ -54,8 +54,10 @@ class Executor(ABC):
         """Release it (idempotent); the robot is left holding its last target."""
 
     @abstractmethod
-    def apply_command(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        """Hold target angles ``q`` (rad) with velocity feed-forward ``dq`` (rad/s) from now on.
+    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None) -> np.ndarray:
+        """Hold target angles ``q`` (rad) with velocity feed-forward ``dq`` (rad/s) from now on;
+        ``ddq`` (rad/s²) the command's acceleration, for an executor that can feed it forward
+        through the robot's inertia (None: zero).
 
         Targets outside the joint ranges are clipped; returns the target applied.
         """

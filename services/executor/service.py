@@ -168,7 +168,7 @@ class ExecutorService(ScheduledService):
         if now - received.received <= self.conf.executor.command_timeout_s:
             if received is not self._applied:
                 message = received.message
-                self._target = self.executor.apply_command(message.q, message.dq)
+                self._target = self.executor.apply_command(message.q, message.dq, message.ddq)
                 self.clipped_commands += int(not np.array_equal(self._target, message.q))
                 self.commands_applied += 1
                 self._applied = received

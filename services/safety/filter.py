@@ -10,11 +10,26 @@ as the static capsules of :mod:`~services.safety.barriers.static`), each row har
 reachable in one step; u* is clipped to them whatever the solver returns, so
 |q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly.
 
+**Acceleration bound.** With ``accel_max`` a (rad/s²) the box is narrowed so that every joint
+can still stop at its limit decelerating at a, and intersected with [u_prev − aΔt, u_prev + aΔt]
+(u_prev: the previous step's u*), so the command changes speed no
+faster than the motors can follow and the robot stays on the path the barriers were computed for
+(a command that jumps between velocity bounds leaves the servos 0.1–0.3 rad behind, and the
+barriers hold at q_cbf but not at the robot). The bound is the lowest priority: when no u within
+it satisfies the rows (or their least violation), it is widened ×2, ×4, ×8, ×16 and finally
+dropped, the first box that works is used, and ``accel_max`` is reported among the rows that
+gave way. ``ddq`` = (u* − u_prev)/Δt is the command's acceleration (the executor's inertial
+feed-forward). After :meth:`SafetyFilter.reset` there is no u_prev and no bound for one step.
+
 **Prioritised relaxation.** When the rows are infeasible together (a person moving into the robot
 faster than it can retreat), every row i gets a slack σ_i ∈ [0, max(b_i, 0)] (A_i u + σ_i ≥ b_i,
 so A_i u ≥ min(b_i, 0): a soft robot–person row may give way but the robot never closes in on
 that capsule; a hard row whose b_i ≤ 0 keeps σ_i = 0 and stays exactly as it was), and two QPs
-are solved in order (a lexicographic solve):
+are solved in order (a lexicographic solve). Inside an acceleration bound (below) a robot moving
+toward a person may be unable to stop within one step: there a soft row's floor is the hardest
+braking the box allows, A_i u ≥ min(b_i, 0, A_i ū) with ū the box's point nearest rest (0 when
+the box holds 0): the robot closes in no faster than braking as hard as the bound lets it, the
+most a real robot can do (commanding more only leaves its servos behind):
 
 1. least violation: min Σ c_i σ_i (+ ½ε‖u − u_ref‖²_W + ½ε‖σ‖² to make it strictly convex),
    c_i = 1 for a soft row and ``relax_penalty`` for a hard row that is already violated;
@@ -23,8 +38,11 @@ are solved in order (a lexicographic solve):
    violation cannot grow.
 
 *Feasible by construction.* u = 0, σ_i = max(b_i, 0) satisfies every constraint of both stages
-whenever 0 lies in the velocity box, which holds because q_cbf stays within the joint limits and
+whenever 0 lies in the box, which holds in the last box tried (the velocity box alone, the
+acceleration bound dropped; ū = 0 there) because q_cbf stays within the joint limits and
 u_min ≤ 0 < u_max: row i reads 0 + max(b_i, 0) ≥ b_i, and σ_i's bounds contain max(b_i, 0).
+In an acceleration-bounded box u = ū satisfies every soft row by the choice of its floor, so only
+the hard rows can make that box infeasible (then the next, wider one is tried).
 In particular the hard rows (self pairs, joint barriers) whose b_i ≤ 0 at the step's start
 (they hold: h ≥ 0 ⇔ b = −γ h ≤ 0) are never relaxed; a violated one (b_i > 0, which the hard
 rows prevent from happening) is softened the same way at cost ``relax_penalty``.
@@ -48,7 +66,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
-from services.safety.barriers.joints import JointBarrier
+from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
 from services.safety.qp.box import clip_and_step, velocity_box
@@ -66,6 +84,10 @@ RELAXED_PRIMAL_TOL = 1e-6
 _STATIC_ROW = 1e-12
 #: a slack above this (m/s of barrier rate) means its row gave way
 RELAXED_TOL = 1e-6
+#: the acceleration bound's factors, tried in order when no u within it satisfies the rows
+ACCEL_WIDENING = (1.0, 2.0, 4.0, 8.0, 16.0)
+#: the name :attr:`StepResult.gave_way` gives the acceleration bound when it was widened or dropped
+ACCEL_BOUND = "accel_max"
 
 
 def movable_rows(A: np.ndarray) -> np.ndarray:
@@ -93,6 +115,7 @@ class FilterParams:
     relax_penalty: float  # stage-1 cost of an already-violated hard row's slack (a soft row's: 1)
     u_min: np.ndarray | None = None  # lower velocity bound (n,); None: −u_max
     human_lookahead_s: float = 0.0  # T of the human velocity term (s; see barrier.py)
+    accel_max: np.ndarray | None = None  # |u − u_prev|/Δt bound (n,) rad/s²; None: none
 
     @classmethod
     def from_config(cls, safety) -> FilterParams:  # shared.config.SafetyConfig
@@ -105,6 +128,7 @@ class FilterParams:
             relax_penalty=safety.relax_penalty,
             u_min=None if safety.u_min is None else np.asarray(safety.u_min, dtype=np.float64),
             human_lookahead_s=safety.human_lookahead_s,
+            accel_max=None if safety.accel_max is None else np.asarray(safety.accel_max, dtype=np.float64),
         )
 
 
@@ -115,7 +139,8 @@ class StepResult:
     ``intrusion``: a person capsule is inside the margin (h < 0 on a soft pair row) while the
     robot retreats from or holds against it (A_i u* ≥ 0); ``gave_way`` the names of every row of
     any barrier that gave way (:meth:`Barrier.row_names`, each once); ``min_h_self`` (m) the
-    smallest h over the self-collision distance rows of every barrier (pair and static; None: none)."""
+    smallest h over the self-collision distance rows of every barrier (pair and static; None: none);
+    ``ddq`` (n,) rad/s² the command's acceleration (u* − u_prev)/Δt (zero after a reset)."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -129,6 +154,7 @@ class StepResult:
     intrusion: bool = False
     gave_way: tuple[str, ...] = ()
     min_h_self: float | None = None
+    ddq: np.ndarray | None = None
 
 
 class SafetyFilter:
@@ -163,18 +189,21 @@ class SafetyFilter:
         self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
         self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
+        self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
 
     def reset(self, q: np.ndarray) -> None:
         """Restart integration from configuration ``q`` (e.g. the measured joint state)."""
         q = np.asarray(q, dtype=np.float64)
         if q.shape == self.q_cbf.shape and np.isfinite(q).all():
             self.q_cbf = np.clip(q, self.q_min, self.q_max)
+            self._u_prev = None
 
     def blocks_at(self, q: np.ndarray) -> list[RowBlock]:
         """Every barrier's rows at configuration ``q`` (no QP, no state change); the pair rows first."""
         endpoints, jacobians = self.kinematics.compute(q)
         p = self.params
-        return [b.constraint_rows(q, endpoints, jacobians, p.gamma, p.phi, p.human_lookahead_s) for b in self.barriers]
+        return [b.constraint_rows(q, endpoints, jacobians, p.gamma, p.phi, p.human_lookahead_s, p.accel_max)
+                for b in self.barriers]
 
     def rows_at(self, q: np.ndarray) -> BarrierRows:
         """The pair barrier's rows at configuration ``q`` (no QP, no state change)."""
@@ -207,6 +236,8 @@ class SafetyFilter:
         else:
             A, b, soft = rows.A[:0], rows.b[:0], rows.soft[:0]
             kept = np.arange(0)
+        boxes = self._boxes(q, lower, upper, dt)
+        lower, upper, honours = boxes[0]
         problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
@@ -219,8 +250,12 @@ class SafetyFilter:
                 mode = SafetyMode.RELAXED
             active = solution.active_rows
         else:
-            u, slack, seconds = self._relax(problem, soft)
-            qp_time += seconds
+            for lower, upper, honours in boxes:  # the acceleration bound, widened, then none
+                problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
+                u, slack, seconds = self._relax(problem, soft)
+                qp_time += seconds
+                if u is not None:
+                    break
             if u is not None:
                 mode = SafetyMode.RELAXED
                 active = int(np.count_nonzero(A @ u - b <= 1e-6))
@@ -230,11 +265,15 @@ class SafetyFilter:
                 gave_way = tuple(dict.fromkeys(self.row_names[i] for i in np.flatnonzero(gave)))
             else:
                 u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
+        if not honours:
+            gave_way += (ACCEL_BOUND,)
         # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within the limits
         u, q_next = clip_and_step(u, lower, upper, q, dt, self.q_min, self.q_max)
         if q_next is None:  # not finite
             u, q_next, mode = np.zeros(problem.n), q.copy(), SafetyMode.HOLD
         self.q_cbf = q_next
+        ddq = np.zeros(problem.n) if self._u_prev is None else (u - self._u_prev) / dt
+        self._u_prev = u
         intrusion = False
         if self.enforce and rows.min_h_all < 0.0:  # min over enabled rows: no row inside its margin, no intrusion
             person = rows.soft & rows.enabled & (rows.h < 0.0)  # a disabled row's h is NaN: never < 0
@@ -242,18 +281,50 @@ class SafetyFilter:
         return StepResult(
             q_cbf=self.q_cbf.copy(), u=u, u_ref=u_ref, mode=mode, rows=rows, active_rows=active,
             qp_time_s=qp_time, qp_status=solution.status, relaxed=relaxed, intrusion=intrusion,
-            gave_way=gave_way, min_h_self=min_h_self(blocks),
+            gave_way=gave_way, min_h_self=min_h_self(blocks), ddq=ddq,
         )
+
+    def _boxes(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+               dt: float) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+        """The velocity boxes to try in order, each (lower, upper, honours the acceleration bound).
+
+        Without a bound (none configured, or the first step after a reset): the velocity box
+        ``[lower, upper]`` alone. With one (a, rad/s²): the velocity box narrowed so that a joint
+        can still stop at its limit decelerating at a' = β a (β = BRAKE_SHARE; d the distance left:
+        |u| ≤ √(2a'd + (a'Δt/2)²) − a'Δt/2, the speed from which steps of a'Δt brake to rest within
+        d; 0 stays inside), then
+        intersected with [u_prev − f aΔt, u_prev + f aΔt] for f in :data:`ACCEL_WIDENING`, then that
+        narrowed box alone. A bound clipped into the box is non-empty but no longer honoured where
+        the box lies wholly beyond it (a velocity bound lowered at run time)."""
+        a = self.params.accel_max
+        if a is None or self._u_prev is None:
+            return [(lower, upper, True)]
+        brake = BRAKE_SHARE * a
+        half = 0.5 * brake * dt
+        upper = np.minimum(upper, np.sqrt(2.0 * brake * np.maximum(self.q_max - q, 0.0) + half * half) - half)
+        lower = np.minimum(np.maximum(lower, half - np.sqrt(2.0 * brake * np.maximum(q - self.q_min, 0.0) + half * half)), upper)
+        boxes = []
+        for factor in ACCEL_WIDENING:
+            reach = factor * a * dt
+            low, high = self._u_prev - reach, self._u_prev + reach
+            honours = factor == 1.0 and bool((low <= upper).all() and (high >= lower).all())
+            boxes.append((np.clip(low, lower, upper), np.clip(high, lower, upper), honours))
+        return [*boxes, (lower, upper, False)]
 
     def _relax(self, problem: QPProblem, soft: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, float]:
         """The lexicographic relaxed solve (module docstring): (u or None, slacks (m,), seconds).
 
-        Only rows with b_i > 0 get a slack variable: for the others σ_i ∈ [0, max(b_i, 0)] = {0}.
+        Row i may fall to its floor f_i = min(b_i, 0) (a soft row: min(b_i, 0, A_i ū), ū the box's
+        point nearest rest): σ_i ∈ [0, b_i − f_i]. Only rows with b_i > f_i get a slack variable.
         """
         n, m = problem.n, problem.m
-        loose = np.flatnonzero(problem.b > 0.0)
+        floor = np.minimum(problem.b, 0.0)
+        brake = np.clip(0.0, problem.lower, problem.upper)  # the box's point nearest rest: 0 in a velocity box
+        floor[soft] = np.minimum(floor[soft], problem.A[soft] @ brake)
+        slack_cap = problem.b - floor
+        loose = np.flatnonzero(slack_cap > 0.0)
         k = len(loose)
-        cap = problem.b[loose]  # σ ∈ [0, b] on the rows that may give way
+        cap = slack_cap[loose]  # σ ∈ [0, b − f] on the rows that may give way
         cost = np.where(soft[loose], 1.0, self.params.relax_penalty)
         columns = np.zeros((m, k))
         columns[loose, np.arange(k)] = 1.0

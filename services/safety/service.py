@@ -257,16 +257,16 @@ class SafetyService(ScheduledService):
             q_nom = pipeline.filter.q_cbf.copy()
         result = pipeline.filter.step(q_nom, self.period, dq_nom)
 
-        q, u, mode = result.q_cbf, result.u, result.mode
-        if not (np.isfinite(q).all() and np.isfinite(u).all()):  # the filter promises this never happens
+        q, u, ddq, mode = result.q_cbf, result.u, result.ddq, result.mode
+        if not (np.isfinite(q).all() and np.isfinite(u).all() and np.isfinite(ddq).all()):  # the filter promises this never happens
             self.nonfinite_holds += 1
             self.refusals.refuse("robot/command")
-            q, u, mode = self._last_q.copy(), np.zeros_like(self._last_q), SafetyMode.HOLD
+            q, u, ddq, mode = self._last_q.copy(), np.zeros_like(self._last_q), np.zeros_like(self._last_q), SafetyMode.HOLD
             pipeline.filter.reset(q)
         message = human.message if human is not None else None
         self._command_pub.put(
             JointCommand(
-                stamp=now, q=q, dq=u, mode=mode,
+                stamp=now, q=q, dq=u, ddq=ddq, mode=mode,
                 human_stamp=message.stamp if message is not None else None,
                 human_seq=message.seq if message is not None else None,
             )

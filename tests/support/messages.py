@@ -42,7 +42,7 @@ def make(cls: type[Message], **changes: Any) -> Message:
         if cls is JointState:
             base |= dict(q_command=rng.uniform(-1, 1, 8), command_stale=True)
         if cls is JointCommand:
-            base |= dict(mode=SafetyMode.ACTIVE, human_stamp=1234.4, human_seq=7)
+            base |= dict(mode=SafetyMode.ACTIVE, human_stamp=1234.4, human_seq=7, ddq=rng.uniform(-50, 50, 8))
     elif cls is SafetyStatus:
         base |= dict(
             mode=SafetyMode.ACTIVE,
@@ -114,7 +114,7 @@ def random_message(cls: type[Message], rng: np.random.Generator, config: Callabl
                           command_stale=bool(rng.random() < 0.2))
     if cls is JointCommand:
         return JointCommand(**common, q=rng.uniform(-0.5, 0.5, 8), dq=rng.normal(0.0, 0.5, 8),
-                            mode=pick(list(SafetyMode)), human_stamp=stamp - 0.02, human_seq=int(rng.integers(0, 2**40)))
+                            ddq=rng.normal(0.0, 20.0, 8), mode=pick(list(SafetyMode)), human_stamp=stamp - 0.02, human_seq=int(rng.integers(0, 2**40)))
     if cls is SafetyStatus:
         return SafetyStatus(
             **common, mode=pick(list(SafetyMode)), min_h_self=float(rng.normal(0.1, 0.1)),

@@ -126,7 +126,9 @@ class G1Executor(Executor):
         self._reader = self._writer = self._link = None  # CycloneDDS deletes the entities with them
 
     # the tick ------------------------------------------------------------------------------------
-    def apply_command(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None) -> np.ndarray:
+        """``ddq`` is not fed forward: the adapter has no inertia model of the real G1 (its PD gains
+        and the velocity feed-forward follow the acceleration-bounded command)."""
         return self.controller.command(time.monotonic(), q, dq)
 
     def tick(self) -> None:

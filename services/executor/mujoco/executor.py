@@ -105,8 +105,8 @@ class MujocoExecutor(Executor):
             self._viewer.close()
             self._viewer = None
 
-    def apply_command(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        return self.sim.set_command(q, dq)
+    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None) -> np.ndarray:
+        return self.sim.set_command(q, dq, ddq)
 
     def tick(self) -> None:
         self.sim.step(self.substeps)

@@ -95,10 +95,12 @@ class PDGains:
     hold_kd: float
     per_joint: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     gravity_compensation: bool = True
+    torque_feedforward: bool = True
 
     @classmethod
     def from_config(cls, conf: ExecutorConfig) -> PDGains:
-        return cls(conf.kp, conf.kd, conf.hold_kp, conf.hold_kd, dict(conf.joint_gains), conf.gravity_compensation)
+        return cls(conf.kp, conf.kd, conf.hold_kp, conf.hold_kd, dict(conf.joint_gains), conf.gravity_compensation,
+                   conf.torque_feedforward)
 
     def of(self, joint: str, imitation: bool) -> tuple[float, float]:
         """(kp, kd) of ``joint``; ``imitation``: whether it is one of the 8 imitation joints."""
@@ -318,8 +320,11 @@ class SimRobot:
         self.q_home = self._qpos_home[self._qadr].copy()
         # ctrl at home: each servo's joint angle at home (every joint is 1-DoF: qposadr = its index)
         self._ctrl_home = self._qpos_home[m.jnt_qposadr[m.actuator_trnid[:, 0]]].copy()
-        # velocity feed-forward folded into the servo's ctrl: kp (q_ref + kd/kp q̇_ref − q) − kd q̇
-        self._ff = np.array([kd / kp for kp, kd in (self.gains.of(j, True) for j in self.joint_names)])
+        # feed-forward folded into the servo's ctrl: kp (q_ref + kd/kp q̇_ref + τ_ff/kp − q) − kd q̇
+        kp_kd = np.array([self.gains.of(j, True) for j in self.joint_names])
+        self._ff = kp_kd[:, 1] / kp_kd[:, 0]
+        self._inv_kp = 1.0 / kp_kd[:, 0]
+        self._inertia = np.zeros((m.nv, m.nv))  # the joint-space inertia, dense (mj_fullM)
 
         self._body_names = [m.body(b).name for b in range(m.nbody)]
         collides = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
@@ -381,22 +386,36 @@ class SimRobot:
         return self.data.qvel[self._dadr].copy()
 
     # ------------------------------------------------------------------------- inputs
-    def set_command(self, q: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
-        """Servo the imitation joints to ``q`` (rad) with velocity feed-forward ``dq`` (rad/s).
+    def set_command(self, q: np.ndarray, dq: np.ndarray | None = None, ddq: np.ndarray | None = None) -> np.ndarray:
+        """Servo the imitation joints to ``q`` (rad) with velocity feed-forward ``dq`` (rad/s) and,
+        with ``gains.torque_feedforward``, the torque of the commanded acceleration ``ddq`` (rad/s²):
 
-        ``q`` is clipped to the joint ranges; returns the target actually applied.
+            τ_ff = M_II(q) q̈_ref + c_I(q, q̇)
+
+        (I: the imitation joints; M from the last physics step's state; c = the bias forces minus
+        the servos' gravity compensation: Coriolis and centrifugal torques, which a fast arm puts on
+        the waist). ``q`` is clipped to the joint ranges; returns the target actually applied.
         Raises ValueError for a wrong shape or a non-finite value.
         """
-        q = np.asarray(q, dtype=float)
-        dq = np.zeros_like(q) if dq is None else np.asarray(dq, dtype=float)
         n = len(self.joint_names)
-        if q.shape != (n,) or dq.shape != (n,):
-            raise ValueError(f"q and dq must have shape ({n},), got {q.shape} and {dq.shape}")
-        if not (np.isfinite(q).all() and np.isfinite(dq).all()):
-            raise ValueError("q and dq must be finite")
+        q = np.asarray(q, dtype=float)
+        dq, ddq = (np.zeros(n) if v is None else np.asarray(v, dtype=float) for v in (dq, ddq))
+        if q.shape != (n,) or dq.shape != (n,) or ddq.shape != (n,):
+            raise ValueError(f"q, dq and ddq must have shape ({n},), got {q.shape}, {dq.shape} and {ddq.shape}")
+        if not (np.isfinite(q).all() and np.isfinite(dq).all() and np.isfinite(ddq).all()):
+            raise ValueError("q, dq and ddq must be finite")
         target = np.clip(q, self.q_min, self.q_max)
-        self.data.ctrl[self._act] = target + self._ff * dq
+        ctrl = target + self._ff * dq
+        if self.gains.torque_feedforward:
+            ctrl += self._inv_kp * self.feedforward_torque(ddq)
+        self.data.ctrl[self._act] = ctrl
         return target
+
+    def feedforward_torque(self, ddq: np.ndarray) -> np.ndarray:
+        """τ_ff (N·m, imitation joints) of :meth:`set_command` for the acceleration ``ddq`` (rad/s²)."""
+        mujoco.mj_fullM(self.model, self.data, self._inertia)
+        bias = self.data.qfrc_bias[self._dadr] - self.data.qfrc_gravcomp[self._dadr]
+        return self._inertia[np.ix_(self._dadr, self._dadr)] @ ddq + bias
 
     def set_human(self, capsules: np.ndarray, radii: np.ndarray, valid: np.ndarray, person: int = 0) -> None:
         """Place ``person``'s capsules: ``capsules[i] = (a_i, b_i)`` in the world/robot frame (m),

@@ -45,10 +45,12 @@ class Barrier(ABC):
 
     @abstractmethod
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
-                        lookahead: float) -> RowBlock:
+                        lookahead: float, accel: np.ndarray | None = None) -> RowBlock:
         """Rows at joint angles ``q`` (n,) rad whose forward kinematics gave the robot capsules'
         ``endpoints`` (7, 2, 3) m and ``jacobians`` (7, 2, 3, n); ``gamma`` (1/s) the CBF rate,
-        ``phi`` (m) the distance margin, ``lookahead`` (s) the human velocity term's T."""
+        ``phi`` (m) the distance margin, ``lookahead`` (s) the human velocity term's T, ``accel``
+        (n,) rad/s² the joints' acceleration bound (None: none; a joint-space barrier then lets a
+        joint approach no faster than it can stop)."""
 
     @abstractmethod
     def row_names(self) -> tuple[str, ...]:

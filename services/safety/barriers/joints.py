@@ -2,7 +2,12 @@
 
 One hard row per bound, h_j = sign (q_j − bound) ≥ 0:
 
-    lower bound:  u_j ≥ −γ (q_j − lower_j)         upper bound:  −u_j ≥ −γ (upper_j − q_j)
+    lower bound:  u_j ≥ −α(q_j − lower_j)         upper bound:  −u_j ≥ −α(upper_j − q_j)
+
+with the class-K function α(h) = γ h, or, where the joint's acceleration is bounded by a_j,
+α(h) = min(γ h, √(2 β a_j h)) for h ≥ 0 (β = BRAKE_SHARE of the bound): a joint approaches its
+barrier no faster than it can stop at it (γ h alone asks for a deceleration of γ·speed, which at
+a fast joint is more than the bound allows).
 """
 
 from __future__ import annotations
@@ -12,6 +17,10 @@ from collections.abc import Mapping
 import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
+
+#: The share of a joint's acceleration bound it counts on to stop at a barrier or a joint limit (the
+#: rest is left to the other rows and joints competing for the same step).
+BRAKE_SHARE = 0.5
 
 
 class JointBarrier(Barrier):
@@ -33,9 +42,12 @@ class JointBarrier(Barrier):
         self._names = tuple(f"{joint_names[j]}{'>=' if sgn > 0 else '<='}{bound:g}" for j, sgn, bound in rows)
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
-                        lookahead: float) -> RowBlock:
+                        lookahead: float, accel: np.ndarray | None = None) -> RowBlock:
         h = self.sign * (q[self.index] - self.bound)
-        return RowBlock(A=self._A, b=-gamma * h, soft=self._soft, h=h)
+        alpha = gamma * h
+        if accel is not None:
+            alpha = np.where(h > 0.0, np.minimum(alpha, np.sqrt(2.0 * BRAKE_SHARE * accel[self.index] * np.maximum(h, 0.0))), alpha)
+        return RowBlock(A=self._A, b=-alpha, soft=self._soft, h=h)
 
     def row_names(self) -> tuple[str, ...]:
         return self._names

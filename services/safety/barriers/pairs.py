@@ -214,5 +214,5 @@ class CollisionGeometry(Barrier):
                            is_self=self._row_is_self, min_h_all=min_h_all)
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
-                        lookahead: float) -> BarrierRows:
+                        lookahead: float, accel: np.ndarray | None = None) -> BarrierRows:
         return self.evaluate(endpoints, jacobians, gamma, phi, lookahead)

@@ -48,7 +48,7 @@ class StaticCapsuleBarrier(Barrier):
         self._hard, self._self, self._enabled = np.zeros(m, bool), np.ones(m, bool), np.ones(m, bool)
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
-                        lookahead: float) -> BarrierRows:
+                        lookahead: float, accel: np.ndarray | None = None) -> BarrierRows:
         if not len(self.names):
             empty = np.zeros(0)
             return BarrierRows(A=np.zeros((0, self._n_joints)), b=empty, soft=self._hard, h=empty, distance=empty,
