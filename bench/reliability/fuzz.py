@@ -221,6 +221,8 @@ class Hostile:
                 min_h_human=float(r.normal(0.3, 0.3)) if r.random() < 0.7 else None,
                 active_constraints=int(r.integers(0, 72)), total_constraints=int(r.integers(0, 200)),
                 qp_solve_time_ms=float(r.uniform(0, 1)), step_time_ms=float(r.uniform(0, 2)),
+                binding_pairs=["left_forearm|human.torso"] if r.random() < 0.5 else [],
+                q_nom=r.uniform(-0.5, 0.5, 8) if r.random() < 0.5 else None,
                 dropped={"human/state": int(r.integers(0, 1000))}, config_version=int(r.integers(0, 2**31)),
             )
         if cls is ConfigUpdate:

@@ -46,10 +46,13 @@ def log_robot_meshes(rec: rr.RecordingStream, mesh: RobotMesh, run: str) -> None
 
 
 def log_robot_pose(rec: rr.RecordingStream, mesh: RobotMesh, run: str, pose: RobotPose,
-                   capsule_radii: np.ndarray) -> None:
-    """Every body's world pose and the CBF capsules of run ``run`` at ``pose`` (:meth:`RobotMesh.pose`)."""
-    for body, t, quat in zip(mesh.bodies, pose.translations, pose.quaternions):
-        rec.log(E.robot(run, "mesh", body), rr.Transform3D(translation=t, quaternion=quat))
+                   capsule_radii: np.ndarray, bodies: np.ndarray | None = None) -> None:
+    """The bodies' world poses and the CBF capsules of run ``run`` at ``pose`` (:meth:`RobotMesh.pose`);
+    ``bodies`` (B,) bool logs only those bodies' poses (e.g. :attr:`RobotMesh.moving`; None: all)."""
+    for body, t, quat, on in zip(mesh.bodies, pose.translations, pose.quaternions,
+                                 np.ones(len(mesh.bodies), bool) if bodies is None else bodies):
+        if on:
+            rec.log(E.robot(run, "mesh", body), rr.Transform3D(translation=t, quaternion=quat))
     log_capsules(rec, E.robot(run, "capsules"), pose.capsules, capsule_radii, None, E.CAPSULE_COLORS[run])
 
 
