@@ -16,6 +16,9 @@ since the last frame:
   ``robot/cbf/status/{mode,qp_ms,step_ms,deadline_misses}`` and its binding pairs;
 - ``HumanState`` → ``person/perceived`` (keypoints, bones, capsules where valid).
 
+The time series are sent in batches every :data:`SERIES_BATCH_S` (:class:`draw.SeriesBatch`; each
+sample keeps its own time), so the plots trail the 3D view by at most that much.
+
 Binding pairs (``barriers/cbf/binding``, yellow as in the paper's figures): the closest-point
 segments, on the capsules drawn, of the pairs the newest ``SafetyStatus`` names in
 ``binding_pairs`` — those whose CBF row was at its bound in the safety service's QP.
@@ -51,6 +54,8 @@ DECIMATED = ("robot/joint_state", "robot/command", "safety/status")
 STALE_S = 1.0
 #: Every body's pose is logged at least this often (s); in between only the moving bodies'.
 FULL_POSE_S = 1.0
+#: The time series gathered are sent this often (s).
+SERIES_BATCH_S = 0.5
 _MODES = tuple(SafetyMode)
 
 
@@ -72,6 +77,9 @@ class LiveScene:
         self._human: np.ndarray | None = None  # the person's capsules (7, 2, 3) m, NaN where invalid
         self._binding: list[str] = []
         self._next_full_pose = -np.inf
+        self.series = draw.SeriesBatch(rec)
+        self._next_series = -np.inf
+        self._t = 0.0  # the frame's time on the timeline (s)
         self.start = time.monotonic()
         draw.log_scene_static(rec, self.joints)
         draw.log_robot_meshes(rec, mesh, "cbf")
@@ -98,7 +106,8 @@ class LiveScene:
     def frame(self, now: float | None = None) -> None:
         """Draw what arrived since the last frame (never raises: failures are counted)."""
         now = time.monotonic() if now is None else now
-        self.rec.set_time(E.TIMELINE, duration=now - self.start)
+        self._t = now - self.start
+        self.rec.set_time(E.TIMELINE, duration=self._t)
         changed = False  # the binding segments need drawing again
         for topic in TOPICS:
             try:
@@ -115,7 +124,18 @@ class LiveScene:
                 self.errors["binding"] += 1
                 log.exception("drawing the binding pairs failed")
         for topic, count in self.bus.dropped.items():
-            draw.log_scalar(self.rec, f"viewer/dropped/{E.safe_part(topic)}", count)
+            self.series.add(f"viewer/dropped/{E.safe_part(topic)}", self._t, count)
+        if now >= self._next_series:
+            self.flush()
+            self._next_series = now + SERIES_BATCH_S
+
+    def flush(self) -> None:
+        """Send the time series gathered so far (:data:`SERIES_BATCH_S`; call once more at the end)."""
+        try:
+            self.series.send()
+        except Exception:
+            self.errors["series"] += 1
+            log.exception("sending the time series failed")
 
     def _pose_robot(self, q: np.ndarray, now: float) -> None:
         pose = self.mesh.pose(q)
@@ -128,7 +148,7 @@ class LiveScene:
 
     def _log_joints(self, series: str, q: np.ndarray) -> None:
         for name, value in zip(self.joints, q):
-            draw.log_scalar(self.rec, E.joint(name, series), value)
+            self.series.add(E.joint(name, series), self._t, value)
 
     def _draw_robot_joint_state(self, m, now: float) -> bool:
         self._pose_robot(m.q, now)
@@ -146,12 +166,12 @@ class LiveScene:
     def _draw_safety_status(self, m, now: float) -> bool:
         if m.q_nom is not None:
             self._log_joints("q_nom", m.q_nom)
-        draw.log_scalar(self.rec, E.barriers("cbf", "min_h", "self"), m.min_h_self)
-        draw.log_scalar(self.rec, E.barriers("cbf", "min_h", "human"), m.min_h_human)
-        draw.log_scalar(self.rec, E.robot("cbf", "status", "mode"), _MODES.index(m.mode))
-        draw.log_scalar(self.rec, E.robot("cbf", "status", "qp_ms"), m.qp_solve_time_ms)
-        draw.log_scalar(self.rec, E.robot("cbf", "status", "step_ms"), m.step_time_ms)
-        draw.log_scalar(self.rec, E.robot("cbf", "status", "deadline_misses"), m.deadline_misses)
+        self.series.add(E.barriers("cbf", "min_h", "self"), self._t, m.min_h_self)
+        self.series.add(E.barriers("cbf", "min_h", "human"), self._t, m.min_h_human)
+        self.series.add(E.robot("cbf", "status", "mode"), self._t, _MODES.index(m.mode))
+        self.series.add(E.robot("cbf", "status", "qp_ms"), self._t, m.qp_solve_time_ms)
+        self.series.add(E.robot("cbf", "status", "step_ms"), self._t, m.step_time_ms)
+        self.series.add(E.robot("cbf", "status", "deadline_misses"), self._t, m.deadline_misses)
         self.logged["status"] += 1
         changed = m.binding_pairs != self._binding
         self._binding = list(m.binding_pairs)

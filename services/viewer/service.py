@@ -139,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
                 next_stats = now + 1.0
             next_frame = max(next_frame + period, now)
             stop.wait(max(0.0, next_frame - time.monotonic()))
+        scene.flush()
     # a slow web client must not hold the exit: the flush and the server's shutdown are bounded
     close_bounded(lambda: (rec.flush(), rec.disconnect()), timeout_s=2.0)
     return 0
