@@ -34,6 +34,7 @@ same router: the transport share) and ``received`` (→ the command's arrival he
 from __future__ import annotations
 
 import os
+import socket
 import tempfile
 import threading
 import time
@@ -134,6 +135,7 @@ def record(topology: str, seconds: float, run_dir: Path) -> Window:
     try:
         if topology in ("router", "router_tls", "router_tls_viewer"):
             children.append(launch(topology, router_command(endpoint, site.certs), run_dir))
+            _wait_listening(endpoint, children[-1])  # a client that finds no router at start-up gives up
             flags = {name: client_flags(endpoint, site.certs) for name in SERVICES}
             tls = TlsConfig(dir=str(certs), identity="viewer") if secure else None
             probe_conf = BusConfig(mode="client", connect=[endpoint], multicast_scouting=False, tls=tls)
@@ -177,6 +179,21 @@ def summary(windows: list[Window]) -> dict[str, Any]:
             "deadline_misses": None if None in misses else sum(misses),  # type: ignore[arg-type]
             "cpu_cores": {name: round(float(np.mean(v)), 3) for name, v in cpu.items()},
             "rounds": len(windows)}
+
+
+def _wait_listening(endpoint: str, child: Child) -> None:
+    """Until ``endpoint`` (``tls/HOST:PORT``) accepts TCP connections; RuntimeError if ``child`` exits
+    or :data:`STARTUP_TIMEOUT_S` passes."""
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while True:
+        try:
+            socket.create_connection((host, int(port)), timeout=1.0).close()
+            return
+        except OSError:
+            if time.monotonic() > deadline or not child.running():
+                raise RuntimeError(f"the router did not listen on {endpoint}:\n{child.log_tail()}") from None
+            time.sleep(0.05)
 
 
 def _cpu_seconds(pid: int) -> float | None:

@@ -153,7 +153,7 @@ class LiveScene:
     def _draw_robot_joint_state(self, m, now: float) -> bool:
         self._pose_robot(m.q, now)
         self._log_joints("q", m.q)
-        return bool(self._binding)
+        return True
 
     def _draw_robot_command(self, m, now: float) -> bool:
         posed = "robot/joint_state" not in self._seen  # no measured state yet: show the commanded pose
@@ -161,7 +161,7 @@ class LiveScene:
             self._pose_robot(m.q, now)
         self._log_joints("q_cbf", m.q)
         self.logged["joints"] += 1
-        return posed and bool(self._binding)
+        return posed
 
     def _draw_safety_status(self, m, now: float) -> bool:
         if m.q_nom is not None:
@@ -182,7 +182,7 @@ class LiveScene:
                         m.capsule_valid)
         self._human = np.where(m.capsule_valid[:, None, None], m.capsules, np.nan)
         self.logged["person"] += 1
-        return bool(self._binding)
+        return True
 
     def _draw_binding(self) -> None:
         """The binding pairs' closest-point segments on the capsules drawn now (a pair whose capsule is
