@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -16,7 +18,7 @@ from shared.bus import Bus  # noqa: E402
 from shared.config import BusConfig, load_config  # noqa: E402
 from shared.messages import JointCommand, JointState, SafetyMode, SafetyStatus  # noqa: E402
 from shared.robot_spec import configured_robot_spec  # noqa: E402
-from tests.support.processes import free_port  # noqa: E402
+from tests.support.processes import Proc, free_port  # noqa: E402
 from tests.test_viewer_recording import rrd_rows  # noqa: E402
 
 
@@ -87,3 +89,25 @@ def test_the_viewer_session_lets_in_at_most_one_control_rate_sample_per_frame() 
         total = everything.count + full.superseded[topic] - all0
     assert sent > 600 and total >= 0.9 * sent, (sent, total)  # every sample reaches an uncapped session
     assert 0.5 * 30 * elapsed <= seen <= 30 * elapsed + 2, (seen, elapsed)
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+def test_the_viewer_process_runs_every_thread_at_idle_priority(tmp_path: Path) -> None:
+    """``safemimic viewer`` (here recording to a file) says it runs under SCHED_IDLE and every thread
+    of it does, Zenoh's and Rerun's included: a waking control tick preempts any of them."""
+    viewer = Proc([sys.executable, "-m", "services.viewer", "--save", str(tmp_path / "v.rrd"), "--duration", "30",
+                   "--insecure", "--mode", "peer", "--no-multicast"])
+    try:
+        ready = viewer.wait_json("ready", timeout=60)
+        viewer.wait_json("stats", timeout=10)  # its loop runs: every thread it starts has started
+        threads = [int(t) for t in os.listdir(f"/proc/{viewer.popen.pid}/task")]
+        policies = {}
+        for t in threads:
+            try:
+                policies[t] = os.sched_getscheduler(t)
+            except ProcessLookupError:  # a thread that ended meanwhile
+                pass
+    finally:
+        viewer.stop()
+    assert ready["scheduling"] == "SCHED_IDLE"
+    assert len(threads) > 3 and set(policies.values()) == {os.SCHED_IDLE}, policies
