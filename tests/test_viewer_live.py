@@ -51,6 +51,9 @@ def test_scene_draws_new_messages_counts_garbage_and_reports_a_silent_publisher(
     rows = rrd_rows(tmp_path / "live.rrd")
     assert rows["/robot/cbf/capsules"] == 3 and rows["/joints/left_elbow_joint/q"] == 3
     assert rows["/joints/left_elbow_joint/q_nom"] == 3 and rows["/barriers/cbf/binding"] == 3
+    # a body's pose is logged when it moved: the static mesh + every frame for the arm, the first frame only
+    # for the pelvis (no imitation joint moves it)
+    assert rows["/robot/cbf/mesh/left_elbow_link"] == 1 + 3 and rows["/robot/cbf/mesh/pelvis"] == 1 + 1
     assert rows["/barriers/cbf/min_h/self"] == 3 and rows["/viewer/log"] >= 1
 
 

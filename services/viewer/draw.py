@@ -48,7 +48,7 @@ def log_robot_meshes(rec: rr.RecordingStream, mesh: RobotMesh, run: str) -> None
 def log_robot_pose(rec: rr.RecordingStream, mesh: RobotMesh, run: str, pose: RobotPose,
                    capsule_radii: np.ndarray, bodies: np.ndarray | None = None) -> None:
     """The bodies' world poses and the CBF capsules of run ``run`` at ``pose`` (:meth:`RobotMesh.pose`);
-    ``bodies`` (B,) bool logs only those bodies' poses (e.g. :attr:`RobotMesh.moving`; None: all)."""
+    ``bodies`` (B,) bool logs only those bodies' poses (None: all)."""
     for body, t, quat, on in zip(mesh.bodies, pose.translations, pose.quaternions,
                                  np.ones(len(mesh.bodies), bool) if bodies is None else bodies):
         if on:

@@ -6,10 +6,10 @@ most one sample per frame of the control-rate topics, :data:`DECIMATED`) and log
 since the last frame:
 
 - ``JointState`` → the robot's body poses and CBF capsules at the measured q (``robot/cbf``),
-  ``joints/{joint}/q`` (rad); before the first one, the newest command's q poses the robot. Only
-  the bodies the imitation joints move are logged each frame (:attr:`RobotMesh.moving`); every
-  body once every :data:`FULL_POSE_S`, so a viewer that joins late or a server that dropped old
-  data still has the legs;
+  ``joints/{joint}/q`` (rad); before the first one, the newest command's q poses the robot. A
+  frame logs only the bodies that moved more than :data:`POSE_TOLERANCE` since they were last
+  logged (legs never, a resting arm not); every body once every :data:`FULL_POSE_S`, so a viewer
+  that joins late or a server that dropped old data still has them all;
 - ``JointCommand`` → ``joints/{joint}/q_cbf`` (rad, the safe target);
 - ``SafetyStatus`` → ``joints/{joint}/q_nom`` (rad, the target the filter tracked),
   ``barriers/cbf/min_h/{self,human}`` (m, the safety service's own min h per pair group),
@@ -52,8 +52,11 @@ TOPICS = ("robot/joint_state", "robot/command", "safety/status", "human/state")
 DECIMATED = ("robot/joint_state", "robot/command", "safety/status")
 #: A topic silent this long (s) is reported stale.
 STALE_S = 1.0
-#: Every body's pose is logged at least this often (s); in between only the moving bodies'.
+#: Every body's pose is logged at least this often (s); in between only the bodies that moved.
 FULL_POSE_S = 1.0
+#: A body moved when its position (m) or a quaternion component changed by more than this
+#: (0.2 mm; ≈ 0.02° of rotation): less is not visible.
+POSE_TOLERANCE = 2e-4
 #: The time series gathered are sent this often (s).
 SERIES_BATCH_S = 0.5
 _MODES = tuple(SafetyMode)
@@ -77,6 +80,7 @@ class LiveScene:
         self._human: np.ndarray | None = None  # the person's capsules (7, 2, 3) m, NaN where invalid
         self._binding: list[str] = []
         self._next_full_pose = -np.inf
+        self._logged_pose: tuple[np.ndarray, np.ndarray] | None = None  # per body: last logged position, quaternion
         self.series = draw.SeriesBatch(rec)
         self._next_series = -np.inf
         self._t = 0.0  # the frame's time on the timeline (s)
@@ -139,10 +143,16 @@ class LiveScene:
 
     def _pose_robot(self, q: np.ndarray, now: float) -> None:
         pose = self.mesh.pose(q)
-        full = now >= self._next_full_pose
-        draw.log_robot_pose(self.rec, self.mesh, "cbf", pose, self.radii, None if full else self.mesh.moving)
-        if full:
+        moved = np.ones(len(self.mesh.bodies), bool)
+        if now < self._next_full_pose and self._logged_pose is not None:
+            position, quaternion = self._logged_pose
+            moved = (np.abs(pose.translations - position).max(axis=1) > POSE_TOLERANCE) | \
+                (np.abs(pose.quaternions - quaternion).max(axis=1) > POSE_TOLERANCE)
+        else:
             self._next_full_pose = now + FULL_POSE_S
+            self._logged_pose = (pose.translations.copy(), pose.quaternions.copy())
+        draw.log_robot_pose(self.rec, self.mesh, "cbf", pose, self.radii, moved)
+        self._logged_pose[0][moved], self._logged_pose[1][moved] = pose.translations[moved], pose.quaternions[moved]
         self._robot_caps = pose.capsules
         self.logged["robot"] += 1
 

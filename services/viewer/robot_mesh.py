@@ -159,8 +159,6 @@ class RobotMesh:
         self.meshes = self._body_meshes()
         self.bodies = tuple(mesh.body for mesh in self.meshes)
         self._body_ids = np.array([self.model.body(name).id for name in self.bodies], dtype=np.intp)
-        #: (B,) bool over :attr:`bodies`: those the imitation joints move (the rest never leave home).
-        self.moving = self._moving()
         self._capsule_body, self._capsule_ab = self._capsule_frames()
 
     def _qpos_address(self, joint: str) -> int:
@@ -203,21 +201,6 @@ class RobotMesh:
         if not meshes:
             raise RobotMeshError(f"robot model {self.spec.model} has no visible geometry in groups {VISIBLE_GROUPS}")
         return tuple(meshes)
-
-    def _moving(self) -> np.ndarray:
-        """(B,) bool: the bodies of :attr:`bodies` an imitation joint moves (below one in the kinematic
-        tree); the others keep their home pose whatever ``q`` is."""
-        m = self.model
-        driven = {int(m.jnt_bodyid[m.joint(j).id]) for j in self.spec.imitation_joints}
-
-        def below_driven(body: int) -> bool:
-            while body > 0:
-                if body in driven:
-                    return True
-                body = int(m.body_parentid[body])
-            return False
-
-        return np.array([below_driven(int(b)) for b in self._body_ids])
 
     def _capsule_frames(self) -> tuple[np.ndarray, np.ndarray]:
         from shared.names import CAPSULE_NAMES
