@@ -59,9 +59,9 @@ BACKGROUND_NICENESS = 19
 def enter_background() -> str:
     """Put every thread of this process, and every thread it starts later, under ``SCHED_IDLE``.
 
-    Linux runs a SCHED_IDLE thread only on a core no other thread wants: a waking normal or real-time
-    thread (a control loop's tick) preempts it at once, whereas a niced thread still takes its
-    time slice first. For a process that only watches (the live viewer) on a host shared with the
+    On a busy core Linux gives a SCHED_IDLE thread the smallest share there is (weight 3 against a
+    nice-0 thread's 1024), and a waking normal or real-time thread (a control loop's tick) preempts
+    it at once, whereas a niced thread may still finish its slice first. For a process that only watches (the live viewer) on a host shared with the
     500 Hz loop. Elsewhere, or if refused, the process is niced to :data:`BACKGROUND_NICENESS`.
     Returns a description for the log.
     """
