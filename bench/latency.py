@@ -12,6 +12,12 @@ Real processes, the command lines of :mod:`safemimic.stack`: ``executor``, ``saf
   certificate, serving its web viewer) subscribed to every topic: ``viewer_cost_p99_ms`` and the
   safety loop's ``deadline_misses`` (from ``SafetyStatus``, over the sampled window) with and
   without it show whether watching changes the loop's deadlines (skipped without rerun-sdk).
+  On a shared machine the background load drifts between two runs more than the viewer could
+  matter, so ``router_tls`` and ``router_tls_viewer`` run in ``rounds`` alternating rounds of
+  ``seconds / rounds`` each, their samples pooled: both see the same drift.
+
+Each topology also reports ``cpu_cores``: the CPU time each process (router, services, viewer)
+used over the sampled window, divided by its length (Linux ``/proc``; absent elsewhere).
 
 ``tls_cost_p50_ms`` / ``tls_cost_p99_ms`` are ``router_tls`` minus ``router``: what authentication,
 encryption and the access-control checks add per skeleton.
@@ -27,6 +33,8 @@ same router: the transport share) and ``received`` (→ the command's arrival he
 
 from __future__ import annotations
 
+import os
+import socket
 import tempfile
 import threading
 import time
@@ -109,8 +117,13 @@ def _free_endpoint(secure: bool = False) -> str:
 
 
 def measure(topology: str, seconds: float, run_dir: Path) -> dict[str, Any]:
-    """Start the services in ``topology`` (``router_tls``, ``router`` or ``direct``), sample
-    ``seconds``, stop them."""
+    """Start the services in ``topology`` (``router_tls``, ``router``, ``direct`` or
+    ``router_tls_viewer``), sample ``seconds``, stop them: :func:`summary` of one :class:`Window`."""
+    return summary([record(topology, seconds, run_dir)])
+
+
+def record(topology: str, seconds: float, run_dir: Path) -> Window:
+    """One sampled window of ``topology`` (:func:`measure`), unsummarised."""
     secure = topology.startswith("router_tls")
     endpoint = _free_endpoint(secure)
     certs = run_dir / "certs"
@@ -122,6 +135,7 @@ def measure(topology: str, seconds: float, run_dir: Path) -> dict[str, Any]:
     try:
         if topology in ("router", "router_tls", "router_tls_viewer"):
             children.append(launch(topology, router_command(endpoint, site.certs), run_dir))
+            _wait_listening(endpoint, children[-1])  # a client that finds no router at start-up gives up
             flags = {name: client_flags(endpoint, site.certs) for name in SERVICES}
             tls = TlsConfig(dir=str(certs), identity="viewer") if secure else None
             probe_conf = BusConfig(mode="client", connect=[endpoint], multicast_scouting=False, tls=tls)
@@ -141,7 +155,62 @@ def measure(topology: str, seconds: float, run_dir: Path) -> dict[str, Any]:
         stop_all(children)
 
 
-def _sample(conf: BusConfig, children: list[Child], seconds: float) -> dict[str, Any]:
+class Window:
+    """What one sampled window of a topology gave: the probe's samples, the safety loop's deadline
+    misses over it (None: fewer than two statuses) and each process's CPU use (cores)."""
+
+    def __init__(self, probe: LatencyProbe, cpu_cores: dict[str, float]) -> None:
+        self.probe = probe
+        self.misses = probe.misses[-1] - probe.misses[0] if len(probe.misses) > 1 else None
+        self.cpu_cores = cpu_cores
+
+
+def summary(windows: list[Window]) -> dict[str, Any]:
+    """Latency statistics over the pooled samples of ``windows`` (rounds of one topology), the
+    deadline misses summed, and the mean CPU use per process."""
+    misses = [w.misses for w in windows]
+    cpu: dict[str, list[float]] = {}
+    for w in windows:
+        for name, cores in w.cpu_cores.items():
+            cpu.setdefault(name, []).append(cores)
+    return {"published": _stats([x for w in windows for x in w.probe.published]),
+            "received": _stats([x for w in windows for x in w.probe.received]),
+            "human_hop": _stats([x for w in windows for x in w.probe.human_hop]),
+            "deadline_misses": None if None in misses else sum(misses),  # type: ignore[arg-type]
+            "cpu_cores": {name: round(float(np.mean(v)), 3) for name, v in cpu.items()},
+            "rounds": len(windows)}
+
+
+def _wait_listening(endpoint: str, child: Child) -> None:
+    """Until ``endpoint`` (``tls/HOST:PORT``) accepts TCP connections; RuntimeError if ``child`` exits
+    or :data:`STARTUP_TIMEOUT_S` passes."""
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while True:
+        try:
+            socket.create_connection((host, int(port)), timeout=1.0).close()
+            return
+        except OSError:
+            if time.monotonic() > deadline or not child.running():
+                raise RuntimeError(f"the router did not listen on {endpoint}:\n{child.log_tail()}") from None
+            time.sleep(0.05)
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time (s) of process ``pid`` so far (its threads included); None without /proc."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _role(child: Child) -> str:
+    """``router``, ``safety``, ``viewer``, ...: a child's name after its topology."""
+    return child.name.rsplit("-", 1)[1] if "-" in child.name else "router"
+
+
+def _sample(conf: BusConfig, children: list[Child], seconds: float) -> Window:
     probe = LatencyProbe()
     bus = _open(conf, children)
     with bus:
@@ -156,14 +225,16 @@ def _sample(conf: BusConfig, children: list[Child], seconds: float) -> dict[str,
                 raise RuntimeError(f"services did not come up (alive: {sorted(probe.alive)}):\n{logs}")
             time.sleep(0.1)
         time.sleep(SETTLE_S)
+        cpu0 = {_role(c): _cpu_seconds(c.pid) for c in children}
         with probe.lock:
             probe.recording = True
         time.sleep(seconds)
         with probe.lock:
             probe.recording = False
-    misses = probe.misses[-1] - probe.misses[0] if len(probe.misses) > 1 else None
-    return {"published": _stats(probe.published), "received": _stats(probe.received),
-            "human_hop": _stats(probe.human_hop), "deadline_misses": misses}
+        cpu1 = {_role(c): _cpu_seconds(c.pid) for c in children}
+    cpu = {role: (cpu1[role] - start) / seconds for role, start in cpu0.items()
+           if start is not None and cpu1[role] is not None}
+    return Window(probe, cpu)
 
 
 def _open(conf: BusConfig, children: list[Child]) -> Bus:
@@ -178,16 +249,24 @@ def _open(conf: BusConfig, children: list[Child]) -> Bus:
             time.sleep(0.1)
 
 
-def run(seconds: float = 30.0) -> dict[str, Any]:
+def run(seconds: float = 30.0, rounds: int = 3) -> dict[str, Any]:
+    """Every topology for ``seconds``; ``router_tls`` and ``router_tls_viewer`` in ``rounds``
+    alternating rounds (module docstring)."""
+    import importlib.util
+
     with tempfile.TemporaryDirectory(prefix="safemimic-latency-") as tmp:
         run_dir = Path(tmp)
         write_paper_scenarios(run_dir / "paper-scenarios.npz")
-        secure = measure("router_tls", seconds, run_dir)
+        with_viewer = importlib.util.find_spec("rerun") is not None
+        secure_rounds, viewed_rounds = [], []
+        for _ in range(rounds if with_viewer else 1):
+            secure_rounds.append(record("router_tls", seconds / rounds if with_viewer else seconds, run_dir))
+            if with_viewer:
+                viewed_rounds.append(record("router_tls_viewer", seconds / rounds, run_dir))
+        secure = summary(secure_rounds)
+        viewed = summary(viewed_rounds) if with_viewer else None
         routed = measure("router", seconds, run_dir)
         direct = measure("direct", seconds, run_dir)
-        import importlib.util
-
-        viewed = measure("router_tls_viewer", seconds, run_dir) if importlib.util.find_spec("rerun") else None
     p50, p99 = routed["published"]["p50"], routed["published"]["p99"]
     tls_p50, tls_p99 = secure["published"]["p50"], secure["published"]["p99"]
     return {
@@ -215,6 +294,7 @@ def run(seconds: float = 30.0) -> dict[str, Any]:
         "viewer_cost_p99_ms": viewed and viewed["published"]["p99"] - tls_p99,
         "deadline_misses": secure["deadline_misses"],
         "viewer_deadline_misses": viewed and viewed["deadline_misses"],
+        "viewer_cpu_cores": viewed and viewed["cpu_cores"].get("viewer"),
         "router_tls_viewer": viewed,
         "router_tls": secure,
         "router": routed,

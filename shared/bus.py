@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -59,10 +59,11 @@ def alive_key(robot_id: str, service: str) -> str:
     return f"{KEY_PREFIX}/{robot_id}/alive/{service}"
 
 
-def zenoh_config(bus: BusConfig, identity: str = "") -> zenoh.Config:
+def zenoh_config(bus: BusConfig, identity: str = "", ingress_max_hz: Mapping[str, float] | None = None) -> zenoh.Config:
     """A ``zenoh.Config`` from our bus settings: mode, endpoints, scouting, lease, message size, and
     with ``bus.tls`` mutual TLS as ``identity`` (its certificate; a router also gets its access
-    control). :class:`ConfigError` for unusable settings or files (:mod:`shared.tls`)."""
+    control). ``ingress_max_hz`` (key expression → Hz) downsamples what this session receives
+    (:func:`ingress_downsampling`). :class:`ConfigError` for unusable settings or files (:mod:`shared.tls`)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(bus.mode.value))
     conf.insert_json5("connect/endpoints", json.dumps(bus.connect))
@@ -75,7 +76,21 @@ def zenoh_config(bus: BusConfig, identity: str = "") -> zenoh.Config:
     conf.insert_json5("connect/retry", json.dumps(CONNECT_RETRY))
     if bus.tls is not None:
         _insert_tls(conf, bus, identity)
+    if ingress_max_hz:
+        conf.insert_json5("downsampling", json.dumps(ingress_downsampling(ingress_max_hz)))
     return conf
+
+
+def ingress_downsampling(max_hz: Mapping[str, float]) -> list[dict]:
+    """Zenoh's ``downsampling`` block (zenoh 1.x interceptor) that lets through at most ``max_hz[key]``
+    puts a second on each key expression *into* this session, on every link: the rest are dropped in
+    Zenoh's Rust transport, before any Python runs or any queue holds them. Zenoh forwards a sample
+    when 1/f has passed since the last one it forwarded on that key, so the newest sample before a
+    publisher goes silent may be one of those dropped."""
+    if not all(0.0 < hz < float("inf") for hz in max_hz.values()):
+        raise ValueError(f"ingress rates must be positive and finite, got {dict(max_hz)}")
+    return [{"id": "ingress_max_hz", "flows": ["ingress"], "messages": ["put"],
+             "rules": [{"key_expr": key, "freq": float(hz)} for key, hz in max_hz.items()]}]
 
 
 def _insert_tls(conf: zenoh.Config, bus: BusConfig, identity: str) -> None:
@@ -104,9 +119,10 @@ def _warn_if_open(bus: BusConfig) -> None:
                     "this Zenoh network can command the robot and switch its safety layer off; development only")
 
 
-def open_session(bus: BusConfig, identity: str = "") -> zenoh.Session:
-    """Open a Zenoh session as ``identity`` (use as a context manager); an open bus logs a warning once."""
-    conf = zenoh_config(bus, identity)
+def open_session(bus: BusConfig, identity: str = "", ingress_max_hz: Mapping[str, float] | None = None) -> zenoh.Session:
+    """Open a Zenoh session as ``identity`` (use as a context manager; ``ingress_max_hz``: :func:`zenoh_config`);
+    an open bus logs a warning once."""
+    conf = zenoh_config(bus, identity, ingress_max_hz)
     _warn_if_open(bus)
     return zenoh.open(conf)
 
@@ -291,17 +307,22 @@ class Bus:
     ``dropped[topic]`` counts payloads refused on ``topic``: those that failed to decode/validate
     and valid messages refused as replayed or out of order (:class:`SourceOrder`), which
     ``out_of_order[topic]`` counts again on their own; ``callback_errors[topic]`` counts exceptions
-    raised by user callbacks (logged, never propagated).
+    raised by user callbacks (logged, never propagated). ``max_hz`` (topic → Hz) caps what this
+    session receives of those topics, dropped in Zenoh before Python sees it
+    (:func:`ingress_downsampling`): a viewer's bound on what the control-rate topics cost it.
     """
 
-    def __init__(self, bus: BusConfig, robot_id: str, service: str) -> None:
+    def __init__(self, bus: BusConfig, robot_id: str, service: str, max_hz: Mapping[str, float] | None = None) -> None:
         self.robot_id = robot_id
         self.service = service
         self.dropped: Counter[str] = Counter()
         self.out_of_order: Counter[str] = Counter()
         self.superseded: Counter[str] = Counter()
         self.callback_errors: Counter[str] = Counter()
-        self._session = open_session(bus, identity=service)
+        for topic in max_hz or {}:
+            _topic_type(topic)  # an unknown topic is a clear error
+        ingress = {topic_key(robot_id, topic): hz for topic, hz in (max_hz or {}).items()}
+        self._session = open_session(bus, identity=service, ingress_max_hz=ingress)
         self._entities: list[object] = []
 
     # context manager -------------------------------------------------------------------------

@@ -195,9 +195,15 @@ class JointCommand(Message):
 
 
 class SafetyStatus(Message):
-    """Periodic report of the safety service (paper eqs. 4–8 quantities, counters)."""
+    """Periodic report of the safety service (paper eqs. 4–8 quantities, counters).
+
+    ``q_nom`` and ``binding_pairs`` describe the control tick that published it: the target the
+    filter tracked and the pairs whose CBF rows bound u* (what the live viewer draws). Schema
+    version 2 added both.
+    """
 
     SCHEMA_NAME: ClassVar[str] = "SafetyStatus"
+    SCHEMA_VERSION: ClassVar[int] = 2
     mode: SafetyMode = Field(strict=False)  # the wire carries the value
     min_h_self: float | None = Field(description="min h over self pairs (m); None if no pair")
     min_h_human: float | None = Field(description="min h over robot–human pairs (m); None if no human")
@@ -216,6 +222,15 @@ class SafetyStatus(Message):
         default_factory=list, max_length=256,
         description="rows that gave way since the previous status (mode relaxed): robot–person pairs, whose rows held "
         "only A u ≥ min(b, 0), or a hard row (self pair, joint barrier) that was already violated",
+    )
+    binding_pairs: list[Annotated[str, StringConstraints(max_length=64)]] = Field(
+        default_factory=list, max_length=256,
+        description="pairs with a CBF row at its bound at this tick's u* (A_i u* ≤ b_i within the QP's active "
+        "tolerance; mode active or relaxed): the binding pairs of the paper's figures, sorted",
+    )
+    q_nom: Array(N_JOINTS) | None = Field(
+        default=None, description="the nominal target (rad, IMITATION_JOINT_NAMES order) the filter tracked at this "
+        "tick: the retargeted person, q_cbf with no person to imitate, the resync target; None if not finite",
     )
     person_intrusion: bool = Field(
         default=False, description="since the previous status, a person capsule was inside the margin (h < 0) while the robot retreated or held"

@@ -1,4 +1,5 @@
-"""Real-time scheduling of a control thread (Linux SCHED_FIFO), with a graceful fallback."""
+"""Scheduling: a control thread in real time (Linux SCHED_FIFO), an onlooker process in the
+background (Linux SCHED_IDLE), each with a graceful fallback."""
 
 from __future__ import annotations
 
@@ -49,3 +50,33 @@ def realtime(priority: int) -> Iterator[str]:
     finally:
         if priority > 0:
             leave_realtime()
+
+
+#: Niceness of a background process where SCHED_IDLE is not available (the lowest priority).
+BACKGROUND_NICENESS = 19
+
+
+def enter_background() -> str:
+    """Put every thread of this process, and every thread it starts later, under ``SCHED_IDLE``.
+
+    On a busy core Linux gives a SCHED_IDLE thread the smallest share there is (weight 3 against a
+    nice-0 thread's 1024), and a waking normal or real-time thread (a control loop's tick) preempts
+    it at once, whereas a niced thread may still finish its slice first. For a process that only watches (the live viewer) on a host shared with the
+    500 Hz loop. Elsewhere, or if refused, the process is niced to :data:`BACKGROUND_NICENESS`.
+    Returns a description for the log.
+    """
+    try:
+        for thread in os.listdir("/proc/self/task"):  # threads already started (Zenoh's, Rerun's)
+            try:
+                os.sched_setscheduler(int(thread), os.SCHED_IDLE, os.sched_param(0))
+            except ProcessLookupError:  # it ended meanwhile
+                pass
+        return "SCHED_IDLE"
+    except (AttributeError, OSError, ValueError) as exc:  # not Linux, no /proc, refused
+        log.info("SCHED_IDLE not available (%s): nice %d instead", exc, BACKGROUND_NICENESS)
+    try:
+        os.nice(BACKGROUND_NICENESS - os.nice(0))
+    except (AttributeError, OSError) as exc:
+        log.warning("could not lower this process's CPU priority (%s)", exc)
+        return "normal scheduling"
+    return f"nice {BACKGROUND_NICENESS}"

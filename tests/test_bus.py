@@ -107,6 +107,15 @@ def test_unknown_topic_is_a_clear_error() -> None:
     assert topic_key("g1", "human/state") == "safemimic/g1/human/state"
 
 
+def test_ingress_caps_name_known_topics_and_positive_rates() -> None:
+    solo = BusConfig(mode="peer", multicast_scouting=False)
+    with pytest.raises(ValueError, match="unknown topic"):
+        Bus(solo, "solo", "viewer", max_hz={"robot/nope": 30.0})
+    for bad in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="positive and finite"):
+            Bus(solo, "solo", "viewer", max_hz={"robot/command": bad})
+
+
 def test_newest_decodes_only_the_newest_valid_sample_of_a_burst() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     listen = BusConfig(mode="peer", listen=[endpoint], multicast_scouting=False)

@@ -67,10 +67,10 @@ ARRAY_FIELDS: dict[type[Message], dict[str, tuple[tuple[int, ...], np.dtype]]] =
     },
     JointState: {"q": ((8,), F8), "dq": ((8,), F8), "q_command": ((8,), F8)},
     JointCommand: {"q": ((8,), F8), "dq": ((8,), F8), "ddq": ((8,), F8)},
-    SafetyStatus: {},
+    SafetyStatus: {"q_nom": ((8,), F8)},
     ConfigUpdate: {},
 }
-OPTIONAL_ARRAYS = {(HumanState, "capsule_velocities"), (JointState, "q_command")}
+OPTIONAL_ARRAYS = {(HumanState, "capsule_velocities"), (JointState, "q_command"), (SafetyStatus, "q_nom")}
 #: Every scalar float field (NaN/Inf must be rejected in each).
 FLOAT_SCALARS: dict[type[Message], tuple[str, ...]] = {
     HumanState: ("stamp", "capture_stamp"),
@@ -240,6 +240,8 @@ FACTORIES: dict[type[Message], st.SearchStrategy[Message]] = {
         executor_holding=st.booleans(),
         resyncing=st.booleans(),
         human_lost=st.booleans(),
+        binding_pairs=st.lists(text(64), max_size=4),
+        q_nom=optional(f64(8)),
         watchdog_trips=st.dictionaries(text(32), st.integers(0, 2**63), max_size=5),
         dropped=st.dictionaries(text(32), st.integers(0, 2**63), max_size=6),
         config_version=st.integers(0, 2**32),

@@ -231,6 +231,7 @@ def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) 
         status = live.rec.wait("safety/status", lambda s: s.min_h_human is not None, timeout_s=2)
         assert status.min_h_human > 1.0  # 2 m away
         assert status.total_constraints == N_SELF_PAIRS + 49 and not status.human_stale
+        np.testing.assert_allclose(status.q_nom, tracking, atol=0.05)  # the target it tracks, reported
 
         # A forearm sweeps in at 0.5 m/s, across the robot's forward-pointing left arm, and stops
         # 0.35 m in front of the chest at shoulder height (robot pelvis z 0.793, torso to ~1.1 m).
@@ -256,11 +257,15 @@ def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) 
     assert not bad, bad[:3]
     assert min(s.min_h_human for s in during) < 0.03  # the barrier really engaged
     assert any(s.mode is SafetyMode.ACTIVE for s in during)
+    # the binding pairs are named (the forearm's rows against the arm it sweeps across) and only then
+    assert any("|human.left_forearm" in name for s in during if s.mode is SafetyMode.ACTIVE for name in s.binding_pairs)
+    assert not any(s.binding_pairs for s in during if s.mode is SafetyMode.NOMINAL)
     print(f"\n  intrusion: min h_human {min(s.min_h_human for s in during) * 1e3:.2f} mm, "
           f"modes {sorted({s.mode.value for s in during})}")
     final = live.rec.last("robot/command")
     assert np.isfinite(final.q).all()
     assert np.abs(final.q - tracking).max() > 0.05  # the robot gave way: no longer at q_nom
+    assert np.abs(final.q - during[-1].q_nom).max() > 0.05  # ... which the status still reports as the target
 
 
 @pytest.mark.integration
@@ -486,7 +491,7 @@ def test_vanished_person_is_held_and_stops_imitating_until_forgotten(service: Sa
     assert result.rows.min_h(False) is not None  # the remembered capsules are still avoided
     assert_brakes_to_rest(service, u_before, result.u)  # q_nom = q_cbf: no longer imitating
     assert service.watchdogs.trips["human_lost"] == 1
-    service._publish_status(0.0, result, result.mode)  # SafetyStatus.human_lost is reported
+    service._publish_status(0.0, result, result.mode, result.q_cbf)  # SafetyStatus.human_lost is reported
     time.sleep(hold + 0.01)
     service.human.set(gone.model_copy(update={"seq": 2}))  # past the hold: forgotten
     result = service.tick(service.human.get().received + 0.01)

@@ -103,6 +103,12 @@ def min_h_self(blocks: Sequence[RowBlock]) -> float | None:
     return min(values, default=None)
 
 
+def binding_rows(rows: BarrierRows, u: np.ndarray) -> np.ndarray:
+    """(m,) bool: the pair rows that bind at ``u`` (n,): enabled, in the QP (:func:`movable_rows`) and
+    at their bound, A_i u − b_i ≤ the QP's active tolerance (a row given way is below it)."""
+    return rows.enabled & movable_rows(rows.A) & (rows.A @ u - rows.b <= QPBackend.active_tol)
+
+
 @dataclass
 class FilterParams:
     """The tunable parameters of one step (subset of shared.config.SafetyConfig)."""

@@ -20,7 +20,8 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
 4. one CBF-QP step with Δt = the nominal period; the command (q_cbf, u*) is checked finite and
    published on ``robot/command`` (a non-finite one is replaced by the last command, counted).
    Every command differs from the previous one by at most u_max·Δt per joint;
-5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`.
+5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`, with that tick's q_nom
+   and the pairs whose rows bind at its u* (:func:`~services.safety.filter.binding_rows`).
 
 Watchdogs (:mod:`services.safety.watchdogs`: ``human_state``, ``human_source``, ``human_lost``,
 ``joint_state``, ``executor_command``, ``resync``), each shown in SafetyStatus and counted in
@@ -50,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from services.safety.assembly import SafetyPipeline, build_pipeline, make_retargeter
-from services.safety.filter import FilterParams, StepResult
+from services.safety.filter import FilterParams, StepResult, binding_rows
 from services.safety.human_memory import HumanMemory
 from services.safety.nominal import NominalTrack
 from services.safety.watchdogs import Watchdogs
@@ -278,7 +279,7 @@ class SafetyService(ScheduledService):
         self._relaxed_since_status.update(result.gave_way)
         self._intrusion_since_status |= result.intrusion
         if now >= self._next_status:
-            self._publish_status(now, result, mode)
+            self._publish_status(now, result, mode, q_nom)
             status_period = 1.0 / self.conf.safety.status_rate_hz
             self._next_status = max(self._next_status + status_period, now + 0.5 * status_period)
         return result
@@ -365,8 +366,12 @@ class SafetyService(ScheduledService):
         self.watchdogs.watch("human_lost", self._memory.lost, f"held: {', '.join(self._memory.lost_capsules)}")
         return received
 
-    def _publish_status(self, now: float, result: StepResult, mode: SafetyMode) -> None:
+    def _publish_status(self, now: float, result: StepResult, mode: SafetyMode, q_nom: np.ndarray) -> None:
         rows = result.rows
+        binding: list[str] = []
+        if mode in (SafetyMode.ACTIVE, SafetyMode.RELAXED):
+            names = self.pipeline.pairs.names
+            binding = sorted({names[i] for i in self.pipeline.barrier.row_pair[binding_rows(rows, result.u)]})
         self._status_pub.put(
             SafetyStatus(
                 stamp=now,
@@ -383,6 +388,8 @@ class SafetyService(ScheduledService):
                 human_source_lost=self._human_source_lost,
                 human_lost=self._memory.lost,
                 relaxed_pairs=sorted(self._relaxed_since_status)[:256],
+                binding_pairs=binding[:256],
+                q_nom=q_nom if np.isfinite(q_nom).all() else None,
                 person_intrusion=self._intrusion_since_status,
                 executor_holding=self.watchdogs.tripped("executor_command"),
                 resyncing=self._resync_target is not None,

@@ -46,10 +46,13 @@ def log_robot_meshes(rec: rr.RecordingStream, mesh: RobotMesh, run: str) -> None
 
 
 def log_robot_pose(rec: rr.RecordingStream, mesh: RobotMesh, run: str, pose: RobotPose,
-                   capsule_radii: np.ndarray) -> None:
-    """Every body's world pose and the CBF capsules of run ``run`` at ``pose`` (:meth:`RobotMesh.pose`)."""
-    for body, t, quat in zip(mesh.bodies, pose.translations, pose.quaternions):
-        rec.log(E.robot(run, "mesh", body), rr.Transform3D(translation=t, quaternion=quat))
+                   capsule_radii: np.ndarray, bodies: np.ndarray | None = None) -> None:
+    """The bodies' world poses and the CBF capsules of run ``run`` at ``pose`` (:meth:`RobotMesh.pose`);
+    ``bodies`` (B,) bool logs only those bodies' poses (None: all)."""
+    for body, t, quat, on in zip(mesh.bodies, pose.translations, pose.quaternions,
+                                 np.ones(len(mesh.bodies), bool) if bodies is None else bodies):
+        if on:
+            rec.log(E.robot(run, "mesh", body), rr.Transform3D(translation=t, quaternion=quat))
     log_capsules(rec, E.robot(run, "capsules"), pose.capsules, capsule_radii, None, E.CAPSULE_COLORS[run])
 
 
@@ -125,12 +128,6 @@ def log_binding(rec: rr.RecordingStream, run: str, segments: np.ndarray) -> None
     rec.log(E.barriers(run, "binding"), rr.LineStrips3D(segments, radii=0.008, colors=E.YELLOW))
 
 
-def log_scalar(rec: rr.RecordingStream, path: str, value: float | None) -> None:
-    """One sample of a time series (None/NaN: nothing logged)."""
-    if value is not None and np.isfinite(value):
-        rec.log(path, rr.Scalars(float(value)))
-
-
 def send_series(rec: rr.RecordingStream, path: str, t: np.ndarray, values: np.ndarray) -> None:
     """A whole time series at once (``t`` (N,) s, ``values`` (N,)); NaN samples left out."""
     values = np.asarray(values, float)
@@ -138,3 +135,25 @@ def send_series(rec: rr.RecordingStream, path: str, t: np.ndarray, values: np.nd
     if keep.any():
         rec.send_columns(path, indexes=[rr.TimeColumn(E.TIMELINE, duration=np.asarray(t, float)[keep])],
                          columns=rr.Scalars.columns(scalars=values[keep]))
+
+
+class SeriesBatch:
+    """Time-series samples gathered per entity path and sent with one Rerun call per series
+    (:func:`send_series`) when :meth:`send` is called: a live stream's plots at a fraction of the
+    cost of one ``rec.log`` per sample (≈ 2 µs a row instead of ≈ 25 µs, measured here)."""
+
+    def __init__(self, rec: rr.RecordingStream) -> None:
+        self.rec = rec
+        self._samples: dict[str, tuple[list[float], list[float]]] = {}
+
+    def add(self, path: str, t: float, value: float | None) -> None:
+        """One sample of series ``path`` at time ``t`` (s); None/NaN is left out when sent."""
+        times, values = self._samples.setdefault(path, ([], []))
+        times.append(t)
+        values.append(np.nan if value is None else float(value))
+
+    def send(self) -> None:
+        """Send every series gathered since the last call, then forget them."""
+        samples, self._samples = self._samples, {}
+        for path, (times, values) in samples.items():
+            send_series(self.rec, path, np.asarray(times), np.asarray(values))

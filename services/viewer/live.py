@@ -1,20 +1,27 @@
 """The live viewer's loop body: newest bus messages → Rerun, at most once per frame.
 
 :class:`LiveScene` reads the newest valid message of each topic (:meth:`shared.bus.Bus.newest`:
-samples wait in Zenoh's queue and only the newest is decoded, so a 500 Hz topic costs this
-process one decode per frame) and logs what changed since the last frame:
+samples wait in Zenoh's queue and only the newest is decoded; the viewer's session lets in at
+most one sample per frame of the control-rate topics, :data:`DECIMATED`) and logs what changed
+since the last frame:
 
 - ``JointState`` → the robot's body poses and CBF capsules at the measured q (``robot/cbf``),
-  ``joints/{joint}/q`` (rad); before the first one, the newest command's q poses the robot;
-- ``JointCommand`` → ``joints/{joint}/q_cbf`` (rad, the safe target) and the mode;
-- ``SafetyStatus`` → ``barriers/cbf/min_h/{self,human}`` (m, the safety service's own min h per
-  pair group), ``robot/cbf/status/{mode,qp_ms,step_ms,deadline_misses}``;
+  ``joints/{joint}/q`` (rad); before the first one, the newest command's q poses the robot. A
+  frame logs only the bodies that moved more than :data:`POSE_TOLERANCE` since they were last
+  logged (legs never, a resting arm not); every body once every :data:`FULL_POSE_S`, so a viewer
+  that joins late or a server that dropped old data still has them all;
+- ``JointCommand`` → ``joints/{joint}/q_cbf`` (rad, the safe target);
+- ``SafetyStatus`` → ``joints/{joint}/q_nom`` (rad, the target the filter tracked),
+  ``barriers/cbf/min_h/{self,human}`` (m, the safety service's own min h per pair group),
+  ``robot/cbf/status/{mode,qp_ms,step_ms,deadline_misses}`` and its binding pairs;
 - ``HumanState`` → ``person/perceived`` (keypoints, bones, capsules where valid).
 
-Binding pairs: the safety service does not publish which rows bind, so the viewer evaluates
-every monitored pair (the description's self pairs and every robot × person capsule pair) on the
-capsules it draws, h = d − (r_A + r_B + φ), and draws the closest-point segments of the pairs with
-h ≤ ``near_m`` in yellow (``barriers/cbf/binding``): those the CBF keeps from closing, or about to.
+The time series are sent in batches every :data:`SERIES_BATCH_S` (:class:`draw.SeriesBatch`; each
+sample keeps its own time), so the plots trail the 3D view by at most that much.
+
+Binding pairs (``barriers/cbf/binding``, yellow as in the paper's figures): the closest-point
+segments, on the capsules drawn, of the pairs the newest ``SafetyStatus`` names in
+``binding_pairs`` — those whose CBF row was at its bound in the safety service's QP.
 
 A message that fails to decode is dropped and counted by the bus; one that fails to draw is
 counted in :attr:`LiveScene.errors` and skipped; a topic silent for :data:`STALE_S` is reported
@@ -35,32 +42,33 @@ from services.viewer import entities as E
 from services.viewer.robot_mesh import RobotMesh
 from shared.bus import Bus
 from shared.messages import SafetyMode
-from shared.names import CAPSULE_NAMES
 
 log = logging.getLogger(__name__)
 TOPICS = ("robot/joint_state", "robot/command", "safety/status", "human/state")
+#: The control-rate topics (500 Hz commands, the executor's states, 50 Hz status): the viewer's
+#: session lets in at most one sample per frame of each (``Bus(max_hz=...)``). ``human/state``
+#: comes at the camera's rate (30 fps), one per frame already; a rule at that rate would drop
+#: every frame that arrives a little early.
+DECIMATED = ("robot/joint_state", "robot/command", "safety/status")
 #: A topic silent this long (s) is reported stale.
 STALE_S = 1.0
+#: Every body's pose is logged at least this often (s); in between only the bodies that moved.
+FULL_POSE_S = 1.0
+#: A body moved when its position (m) or a quaternion component changed by more than this
+#: (0.2 mm; ≈ 0.02° of rotation): less is not visible.
+POSE_TOLERANCE = 2e-4
+#: The time series gathered are sent this often (s).
+SERIES_BATCH_S = 0.5
 _MODES = tuple(SafetyMode)
-
-
-def monitored_pairs(self_pairs: list[tuple[str, str]]) -> tuple[str, ...]:
-    """The monitored pair names (PairSet naming): self pairs, then every robot × person capsule."""
-    return tuple(f"{a}|{b}" for a, b in self_pairs) + tuple(
-        f"{robot}|human.{human}" for human in CAPSULE_NAMES for robot in CAPSULE_NAMES)
 
 
 class LiveScene:
     """What the viewer draws each frame (module docstring); ``rec`` is the Rerun stream, ``radii``
-    the robot's CBF capsule radii (7,) m, ``phi`` the CBF margin (m)."""
+    the robot's CBF capsule radii (7,) m."""
 
-    def __init__(self, bus: Bus, rec: rr.RecordingStream, mesh: RobotMesh, radii: np.ndarray, phi: float,
-                 near_m: float) -> None:
+    def __init__(self, bus: Bus, rec: rr.RecordingStream, mesh: RobotMesh, radii: np.ndarray) -> None:
         self.bus, self.rec, self.mesh, self.radii = bus, rec, mesh, np.asarray(radii, float)
-        self.phi, self.near_m = phi, near_m
         self.joints = tuple(mesh.spec.imitation_joints)
-        self.pairs = monitored_pairs([tuple(p) for p in mesh.spec.self_pairs])
-        self._radius_of = {name: r for name, r in zip(CAPSULE_NAMES, self.radii)}
         self.newest = {topic: bus.newest(topic) for topic in TOPICS}
         self.received: Counter[str] = Counter()  # new messages drawn, per topic
         self.logged: Counter[str] = Counter()  # frames logged per entity group
@@ -69,7 +77,13 @@ class LiveScene:
         self._seen: dict[str, tuple[str, int, float]] = {}  # topic → (source, seq, stamp) last drawn
         self._heard: dict[str, float] = {}
         self._robot_caps: np.ndarray | None = None
-        self._human: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._human: np.ndarray | None = None  # the person's capsules (7, 2, 3) m, NaN where invalid
+        self._binding: list[str] = []
+        self._next_full_pose = -np.inf
+        self._logged_pose: tuple[np.ndarray, np.ndarray] | None = None  # per body: last logged position, quaternion
+        self.series = draw.SeriesBatch(rec)
+        self._next_series = -np.inf
+        self._t = 0.0  # the frame's time on the timeline (s)
         self.start = time.monotonic()
         draw.log_scene_static(rec, self.joints)
         draw.log_robot_meshes(rec, mesh, "cbf")
@@ -96,13 +110,14 @@ class LiveScene:
     def frame(self, now: float | None = None) -> None:
         """Draw what arrived since the last frame (never raises: failures are counted)."""
         now = time.monotonic() if now is None else now
-        self.rec.set_time(E.TIMELINE, duration=now - self.start)
-        changed = False
+        self._t = now - self.start
+        self.rec.set_time(E.TIMELINE, duration=self._t)
+        changed = False  # the binding segments need drawing again
         for topic in TOPICS:
             try:
                 message = self._new(topic, now)
                 if message is not None:
-                    changed |= getattr(self, "_draw_" + topic.replace("/", "_"))(message)
+                    changed |= getattr(self, "_draw_" + topic.replace("/", "_"))(message, now)
             except Exception:  # a valid message the drawing code cannot handle: count, go on
                 self.errors[topic] += 1
                 log.exception("drawing %s failed", topic)
@@ -113,70 +128,80 @@ class LiveScene:
                 self.errors["binding"] += 1
                 log.exception("drawing the binding pairs failed")
         for topic, count in self.bus.dropped.items():
-            draw.log_scalar(self.rec, f"viewer/dropped/{E.safe_part(topic)}", count)
+            self.series.add(f"viewer/dropped/{E.safe_part(topic)}", self._t, count)
+        if now >= self._next_series:
+            self.flush()
+            self._next_series = now + SERIES_BATCH_S
 
-    def _pose_robot(self, q: np.ndarray) -> None:
+    def flush(self) -> None:
+        """Send the time series gathered so far (:data:`SERIES_BATCH_S`; call once more at the end)."""
+        try:
+            self.series.send()
+        except Exception:
+            self.errors["series"] += 1
+            log.exception("sending the time series failed")
+
+    def _pose_robot(self, q: np.ndarray, now: float) -> None:
         pose = self.mesh.pose(q)
-        draw.log_robot_pose(self.rec, self.mesh, "cbf", pose, self.radii)
+        moved = np.ones(len(self.mesh.bodies), bool)
+        if now < self._next_full_pose and self._logged_pose is not None:
+            position, quaternion = self._logged_pose
+            moved = (np.abs(pose.translations - position).max(axis=1) > POSE_TOLERANCE) | \
+                (np.abs(pose.quaternions - quaternion).max(axis=1) > POSE_TOLERANCE)
+        else:
+            self._next_full_pose = now + FULL_POSE_S
+            self._logged_pose = (pose.translations.copy(), pose.quaternions.copy())
+        draw.log_robot_pose(self.rec, self.mesh, "cbf", pose, self.radii, moved)
+        self._logged_pose[0][moved], self._logged_pose[1][moved] = pose.translations[moved], pose.quaternions[moved]
         self._robot_caps = pose.capsules
         self.logged["robot"] += 1
 
-    def _draw_robot_joint_state(self, m) -> bool:
-        self._pose_robot(m.q)
-        for name, value in zip(self.joints, m.q):
-            draw.log_scalar(self.rec, E.joint(name, "q"), value)
+    def _log_joints(self, series: str, q: np.ndarray) -> None:
+        for name, value in zip(self.joints, q):
+            self.series.add(E.joint(name, series), self._t, value)
+
+    def _draw_robot_joint_state(self, m, now: float) -> bool:
+        self._pose_robot(m.q, now)
+        self._log_joints("q", m.q)
         return True
 
-    def _draw_robot_command(self, m) -> bool:
-        if "robot/joint_state" not in self._seen:  # no measured state yet: show the commanded pose
-            self._pose_robot(m.q)
-        for name, value in zip(self.joints, m.q):
-            draw.log_scalar(self.rec, E.joint(name, "q_cbf"), value)
+    def _draw_robot_command(self, m, now: float) -> bool:
+        posed = "robot/joint_state" not in self._seen  # no measured state yet: show the commanded pose
+        if posed:
+            self._pose_robot(m.q, now)
+        self._log_joints("q_cbf", m.q)
         self.logged["joints"] += 1
-        return "robot/joint_state" not in self._seen
+        return posed
 
-    def _draw_safety_status(self, m) -> bool:
-        draw.log_scalar(self.rec, E.barriers("cbf", "min_h", "self"), m.min_h_self)
-        draw.log_scalar(self.rec, E.barriers("cbf", "min_h", "human"), m.min_h_human)
-        draw.log_scalar(self.rec, E.robot("cbf", "status", "mode"), _MODES.index(m.mode))
-        draw.log_scalar(self.rec, E.robot("cbf", "status", "qp_ms"), m.qp_solve_time_ms)
-        draw.log_scalar(self.rec, E.robot("cbf", "status", "step_ms"), m.step_time_ms)
-        draw.log_scalar(self.rec, E.robot("cbf", "status", "deadline_misses"), m.deadline_misses)
+    def _draw_safety_status(self, m, now: float) -> bool:
+        if m.q_nom is not None:
+            self._log_joints("q_nom", m.q_nom)
+        self.series.add(E.barriers("cbf", "min_h", "self"), self._t, m.min_h_self)
+        self.series.add(E.barriers("cbf", "min_h", "human"), self._t, m.min_h_human)
+        self.series.add(E.robot("cbf", "status", "mode"), self._t, _MODES.index(m.mode))
+        self.series.add(E.robot("cbf", "status", "qp_ms"), self._t, m.qp_solve_time_ms)
+        self.series.add(E.robot("cbf", "status", "step_ms"), self._t, m.step_time_ms)
+        self.series.add(E.robot("cbf", "status", "deadline_misses"), self._t, m.deadline_misses)
         self.logged["status"] += 1
-        return False
+        changed = m.binding_pairs != self._binding
+        self._binding = list(m.binding_pairs)
+        return changed
 
-    def _draw_human_state(self, m) -> bool:
+    def _draw_human_state(self, m, now: float) -> bool:
         draw.log_person(self.rec, "perceived", m.keypoints, m.keypoint_valid, m.capsules, m.capsule_radii,
                         m.capsule_valid)
-        self._human = (m.capsules, m.capsule_radii, m.capsule_valid)
+        self._human = np.where(m.capsule_valid[:, None, None], m.capsules, np.nan)
         self.logged["person"] += 1
         return True
 
-    def near_pairs(self) -> list[str]:
-        """Monitored pairs whose h (on the drawn capsules, margin φ) is ≤ ``near_m``."""
-        if self._robot_caps is None:
-            return []
-        people, people_r = np.full((len(CAPSULE_NAMES), 2, 3), np.nan), np.zeros(len(CAPSULE_NAMES))
-        if self._human is not None:
-            caps, radii, valid = self._human
-            people = np.where(valid[:, None, None], caps, np.nan)
-            people_r = radii
-        seg = draw.binding_segments(self.pairs, self._robot_caps, people)  # every name resolves: aligned
-        d = np.linalg.norm(seg[:, 0] - seg[:, 1], axis=1)
-        r = np.array([self._radius_of[n.split("|")[0]] + self._pair_radius(n.split("|")[1], people_r) for n in self.pairs])
-        with np.errstate(invalid="ignore"):
-            near = np.isfinite(d) & (d - r - self.phi <= self.near_m)
-        return [n for n, on in zip(self.pairs, near) if on]
-
-    def _pair_radius(self, member: str, people_r: np.ndarray) -> float:
-        if "." in member:
-            return float(people_r[CAPSULE_NAMES.index(member.split(".", 1)[1])])
-        return float(self._radius_of[member])
-
     def _draw_binding(self) -> None:
-        names = self.near_pairs()
-        people = np.zeros((0, 2, 3)) if self._human is None else self._human[0]
-        segments = draw.binding_segments(names, self._robot_caps, people) if names else np.empty((0, 2, 3))
+        """The binding pairs' closest-point segments on the capsules drawn now (a pair whose capsule is
+        not drawn, e.g. an invalid person capsule, is left out)."""
+        segments = np.empty((0, 2, 3))
+        if self._binding and self._robot_caps is not None:
+            people = np.zeros((0, 2, 3)) if self._human is None else self._human
+            segments = draw.binding_segments(self._binding, self._robot_caps, people)
+            segments = segments[np.isfinite(segments).all(axis=(1, 2))]
         draw.log_binding(self.rec, "cbf", segments)
         self.logged["binding"] += 1
 

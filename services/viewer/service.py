@@ -7,6 +7,11 @@
 Subscribes to ``HumanState``, ``JointCommand``, ``JointState`` and ``SafetyStatus`` with the
 ``viewer`` identity (its certificate may only subscribe: ``safemimic.stack.TOOLS``) and draws,
 at most ``--rate`` (≤ 30) frames a second, what :class:`~services.viewer.live.LiveScene` says.
+What it costs a host shared with the 500 Hz safety loop is bounded twice: Zenoh lets at most
+``--rate`` samples a second of the control-rate topics (:data:`~services.viewer.live.DECIMATED`)
+into its session, dropping the rest before Python sees them, and the process runs in the
+background (:func:`shared.realtime.enter_background`: SCHED_IDLE; ``--foreground`` keeps normal
+priority).
 The bus flag ``--connect`` is Zenoh's; the Rerun viewer to stream to is ``--rerun-connect``.
 By default it serves the web viewer shipped in the rerun-sdk wheel (``--web-port``, gRPC on
 ``--grpc-port``; no internet needed) and prints one JSON line ``{"event": "ready", "url": ...}``;
@@ -19,7 +24,6 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import os
 import sys
 import time
 import urllib.parse
@@ -28,6 +32,7 @@ from pathlib import Path
 from shared.bus import Bus, close_bounded
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError
+from shared.realtime import enter_background
 from shared.robot_spec import RobotSpecError, configured_robot_spec
 from shared.stop_signals import stop_on_signals
 
@@ -47,8 +52,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser = parser or argparse.ArgumentParser(prog="safemimic viewer")
     parser.description = (
         "Live 3D view in Rerun: the robot (meshes from the robot description's MJCF, CBF capsules), the "
-        "perceived person, the closest-point segments of the pairs near binding (yellow), and time series of "
-        "min h per pair group, mode, QP time, q_cbf and measured q per joint. Only subscribes; ≤ 30 frames/s. "
+        "perceived person, the closest-point segments of the pairs the safety service reports binding (yellow), "
+        "and time series of min h per pair group, mode, QP time, q_nom, q_cbf and measured q per joint. Only subscribes; ≤ 30 frames/s. "
         "Serves Rerun's web viewer unless --save or --rerun-connect."
     )
     sink = parser.add_mutually_exclusive_group()
@@ -60,19 +65,14 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument("--grpc-port", type=int, default=GRPC_PORT, metavar="PORT", help=f"Rerun gRPC port the page reads (default {GRPC_PORT})")
     parser.add_argument("--host", default="127.0.0.1", help="host name printed in the URL (default 127.0.0.1)")
     parser.add_argument("--rate", type=_rate, default=MAX_RATE_HZ, metavar="HZ", help="frames a second, ≤ 30 (default 30)")
-    parser.add_argument("--near-m", type=float, default=0.02, metavar="M",
-                        help="draw the closest-point segment of every monitored pair with h ≤ M (default 0.02 m)")
     parser.add_argument("--memory-limit", default="512MiB", help="what the gRPC server keeps for late viewers (default 512MiB)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
-    parser.add_argument("--nice", type=int, default=NICENESS, metavar="N",
-                        help=f"lower this process's CPU priority by N (default {NICENESS}): on a host shared with "
-                        "the 500 Hz safety loop the viewer gives way, it never competes with it; 0 keeps it")
+    parser.add_argument("--foreground", action="store_true",
+                        help="run at normal CPU priority; by default the viewer runs in the background (Linux "
+                        "SCHED_IDLE, elsewhere nice 19) so that on a host shared with the 500 Hz safety loop it "
+                        "never delays it")
     add_bus_arguments(parser)
     return parser
-
-
-#: Default niceness of the viewer process (see --nice).
-NICENESS = 10
 
 
 def _open_sink(rec, args: argparse.Namespace) -> dict:
@@ -93,26 +93,14 @@ def _open_sink(rec, args: argparse.Namespace) -> dict:
     return {"url": f"http://{args.host}:{args.web_port}/?url={urllib.parse.quote(uri, safe='')}", "grpc": uri}
 
 
-def _yield_cpu(niceness: int) -> None:
-    """Lower this process's scheduling priority (POSIX nice); a platform without it keeps going."""
-    if niceness > 0 and hasattr(os, "nice"):
-        try:
-            os.nice(niceness)
-        except OSError as exc:
-            print(f"safemimic viewer: cannot lower the CPU priority ({exc}); continuing", file=sys.stderr)
-
-
 def run(args: argparse.Namespace) -> int:
-    _yield_cpu(args.nice)
+    scheduling = "normal scheduling" if args.foreground else enter_background()
     if importlib.util.find_spec("rerun") is None:
         print("safemimic viewer needs rerun-sdk: pip install 'safemimic[viz]'", file=sys.stderr)
         return 2
-    if not args.near_m >= 0:
-        print("--near-m must be ≥ 0", file=sys.stderr)
-        return 2
     import rerun as rr
 
-    from services.viewer.live import LiveScene
+    from services.viewer.live import DECIMATED, LiveScene
     from services.viewer.robot_mesh import RobotMesh, RobotMeshError
 
     try:
@@ -132,11 +120,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"safemimic viewer: {exc}", file=sys.stderr)
         return 2
     period = 1.0 / args.rate
-    with stop_on_signals() as stop, Bus(conf.bus, conf.robot_id, SERVICE_NAME) as bus:
+    with stop_on_signals() as stop, Bus(conf.bus, conf.robot_id, SERVICE_NAME,
+                                            max_hz=dict.fromkeys(DECIMATED, args.rate)) as bus:
         alive: dict[str, bool] = {}
         bus.watch_alive(lambda service, up: alive.__setitem__(service, up))
-        scene = LiveScene(bus, rec, mesh, radii, conf.safety.phi, args.near_m)
-        print(json.dumps({"event": "ready", **ready, "rate_hz": args.rate}), flush=True)
+        scene = LiveScene(bus, rec, mesh, radii)
+        print(json.dumps({"event": "ready", **ready, "rate_hz": args.rate, "scheduling": scheduling}), flush=True)
         end = time.monotonic() + args.duration if args.duration else float("inf")
         next_frame = next_stats = time.monotonic()
         while not stop.is_set() and time.monotonic() < end:
@@ -150,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
                 next_stats = now + 1.0
             next_frame = max(next_frame + period, now)
             stop.wait(max(0.0, next_frame - time.monotonic()))
+        scene.flush()
     # a slow web client must not hold the exit: the flush and the server's shutdown are bounded
     close_bounded(lambda: (rec.flush(), rec.disconnect()), timeout_s=2.0)
     return 0

@@ -59,6 +59,10 @@ def make(cls: type[Message], **changes: Any) -> Message:
             executor_holding=True,
             resyncing=True,
             human_lost=True,
+            relaxed_pairs=["left_forearm|human.torso"],
+            binding_pairs=["left_forearm|human.torso", "left_forearm|right_forearm"],
+            q_nom=rng.uniform(-1, 1, 8),
+            person_intrusion=True,
             watchdog_trips={"human_state": 2, "resync": 1},
             dropped={"human/state": 3},
             config_version=4,
@@ -121,6 +125,8 @@ def random_message(cls: type[Message], rng: np.random.Generator, config: Callabl
             min_h_human=float(rng.normal(0.3, 0.3)) if rng.random() < 0.7 else None,
             active_constraints=int(rng.integers(0, 72)), total_constraints=int(rng.integers(0, 200)),
             qp_solve_time_ms=float(rng.uniform(0, 1)), step_time_ms=float(rng.uniform(0, 2)),
+            binding_pairs=["left_forearm|human.torso"] if rng.random() < 0.5 else [],
+            q_nom=rng.uniform(-0.5, 0.5, 8) if rng.random() < 0.5 else None,
             dropped={"human/state": int(rng.integers(0, 1000))}, config_version=int(rng.integers(0, 2**31)),
         )
     if cls is ConfigUpdate:
