@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.safety.barriers.pairs import DISABLED_B, BarrierRows, CollisionGeometry, swept_witness_points
+from services.safety.barriers.pairs import DISABLED_B, BarrierRows, CollisionGeometry, segment_rows, swept_witness_points
 from services.safety.pairs import N_ROBOT, PairSet
 
 __all__ = ["DISABLED_B", "BarrierRows", "CapsuleBarrier"]
@@ -46,10 +46,10 @@ class CapsuleBarrier(CollisionGeometry):
         """Rows at the robot configuration whose FK gave ``robot_endpoints`` (7,2,3) and
         ``robot_jacobians`` (7,2,3,n); ``lookahead`` T (s) of the human velocity term."""
         self._endpoints[:N_ROBOT] = robot_endpoints
-        return self._segment_rows(
+        return self._rows(*segment_rows(
             self._endpoints, self._radii, robot_jacobians, self._velocities, self._first, self._second, N_ROBOT,
             gamma, phi, lookahead,
-        )
+        ))
 
     def witness_points(self) -> np.ndarray:
         return swept_witness_points(self._endpoints, self._radii, self._first, self._second)

@@ -182,23 +182,6 @@ class CollisionGeometry(Barrier):
         """(m, 2, 3) the closest points of every row's two colliders at the last evaluation: p_A on
         the robot's, p_B on the other (the constraint lines of the paper's Fig. 4)."""
 
-    def _segment_rows(
-        self,
-        segments: np.ndarray,
-        radii: np.ndarray,
-        jacobians: np.ndarray,
-        velocities: np.ndarray,
-        first: np.ndarray,
-        second: np.ndarray,
-        n_robot: int,
-        gamma: float,
-        phi: float,
-        lookahead: float,
-    ) -> BarrierRows:
-        """:func:`segment_rows` packaged as this geometry's :class:`BarrierRows`."""
-        A, b, h, distance = segment_rows(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead)
-        return self._rows(A, b, h, distance)
-
     def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray) -> BarrierRows:
         """Package the rows, disabling those of missing external capsules."""
         if not self._all_enabled:

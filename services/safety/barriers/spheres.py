@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-from services.safety.barriers.pairs import BarrierRows, CollisionGeometry, swept_witness_points
+from services.safety.barriers.pairs import BarrierRows, CollisionGeometry, segment_rows, swept_witness_points
 from services.safety.errors import SafetyConfigError
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.body import Body, capsule_radii
@@ -154,10 +154,10 @@ class SphereBarrier(CollisionGeometry):
         self._segments[:n_rs, 1] = centres
         flat = self._w_robot @ robot_jacobians.reshape(2 * N_ROBOT, 3 * self.n_joints)
         self._jacobians[:, 0] = flat.reshape(n_rs, 3, self.n_joints)
-        return self._segment_rows(
+        return self._rows(*segment_rows(
             self._segments, self._sphere_radii, self._jacobians, self._sphere_velocities, self._first, self._second,
             n_rs, gamma, phi, lookahead,
-        )
+        ))
 
     def witness_points(self) -> np.ndarray:
         return swept_witness_points(self._segments, self._sphere_radii, self._first, self._second)
