@@ -72,6 +72,7 @@ SAFETY_FIELDS: dict[str, str] = {
     "w": "safety.weights",
     "u_min": "safety.u_min",
     "u_max": "safety.u_max",
+    "accel_max": "safety.accel_max",
     "dt": "safety.rate_hz",  # dt = 1 / rate_hz
     "enabled_pair_groups": "safety.enabled_pair_groups",
     "capsule_radii.robot": "safety.capsule_radii",
@@ -92,7 +93,7 @@ RETARGET_FIELDS: dict[str, str] = {
     "mirror": "retargeting.mirror",
 }
 #: Safety request fields whose value goes into the configuration unchanged.
-_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "human_velocity_term", "sphere_k"}
+_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "human_velocity_term", "sphere_k"}
 #: Configuration field → request field, to name the request's field in errors found on the whole config.
 REQUEST_FIELD: dict[str, str] = {path: name for name, path in (SAFETY_FIELDS | RETARGET_FIELDS).items()}
 
@@ -141,6 +142,9 @@ class SafetyPatch(_Patch):
     w: _vector(gt=0, le=1000) = Field(None, description="diagonal of the QP weight W, per joint")
     u_min: _vector(ge=-50, lt=0) | None = Field(None, description="lower velocity bound per joint (rad/s, < 0); null: −u_max")
     u_max: _vector(gt=0, le=50) = Field(None, description="upper velocity bound per joint (rad/s, > 0)")
+    accel_max: _vector(gt=0, le=10000) | None = Field(
+        None, description="|u − u_prev|/Δt bound per joint (rad/s², > 0): what the motors can follow; null: none"
+    )
     dt: Annotated[float, Strict(), Field(ge=DT_MIN, le=DT_MAX)] = Field(None, description="control period Δt (s) = 1 / control rate")
     enabled_pair_groups: set[PairGroup] = Field(None, description="pair groups whose CBF rows are enforced")
     capsule_radii: CapsuleRadiiPatch = None
@@ -209,6 +213,7 @@ class SafetyParams(_View):
     w: list[float]
     u_min: list[float] | None
     u_max: list[float]
+    accel_max: list[float] | None
     dt: float
     enabled_pair_groups: list[PairGroup]
     capsule_radii: CapsuleRadii
@@ -220,7 +225,8 @@ class SafetyParams(_View):
     def from_config(cls, conf: StackConfig) -> SafetyParams:
         s, h = conf.safety, conf.human
         return cls(
-            gamma=s.gamma, phi=s.phi, k=s.gain, w=s.weights, u_min=s.u_min, u_max=s.u_max, dt=1.0 / s.rate_hz,
+            gamma=s.gamma, phi=s.phi, k=s.gain, w=s.weights, u_min=s.u_min, u_max=s.u_max, accel_max=s.accel_max,
+            dt=1.0 / s.rate_hz,
             enabled_pair_groups=s.enabled_pair_groups,
             capsule_radii=CapsuleRadii(
                 robot=s.capsule_radii,

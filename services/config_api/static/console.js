@@ -7,6 +7,7 @@ const MODE_COLORS = { nominal: "#2e8540", active: "#c77c02", relaxed: "#c0392b",
 const samples = [];             // {t, hSelf, hHuman, solve, mode}
 let loaded = null;              // the last GET /api/config response
 let dirty = false;              // a form was edited since it was filled
+let edits = 0;                  // form edits so far (a reload started before the newest one keeps it)
 
 const $ = (id) => document.getElementById(id);
 const fmt = (x, digits = 3) => (x === null || x === undefined ? "–" : Number(x).toFixed(digits));
@@ -178,12 +179,15 @@ function retargetPatch() {
 }
 
 async function loadConfig() {
+  const editsBefore = edits;
   const result = await call("GET", "/api/config");
   if (!result.ok) { showResult(result, "loading the configuration"); return; }
   loaded = result.data;
   $("robot-id").textContent = loaded.config.robot_id;
   $("config-version").textContent = "v" + loaded.version;
-  fillForms();
+  // an edit typed while the request was in flight is the operator's newest intent: keep it (a
+  // patch is the difference to `loaded`, so it still sends exactly what was edited)
+  if (edits === editsBefore) fillForms();
   loadHistory();
 }
 
@@ -343,7 +347,7 @@ function draw() {
 $("window-s").textContent = WINDOW_S;
 $("token").value = sessionStorage.getItem("safemimic-token") || "";
 $("token").addEventListener("change", () => sessionStorage.setItem("safemimic-token", $("token").value.trim()));
-for (const id of ["safety-form", "retarget-form"]) $(id).addEventListener("input", () => { dirty = true; });
+for (const id of ["safety-form", "retarget-form"]) $(id).addEventListener("input", () => { dirty = true; edits += 1; });
 $("safety-form").addEventListener("submit", (e) => submit(e, "/api/config/safety", safetyPatch(), "safety"));
 $("retarget-form").addEventListener("submit", (e) => submit(e, "/api/config/retarget", retargetPatch(), "retargeting"));
 $("calibrate").addEventListener("click", async () => {
