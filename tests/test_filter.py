@@ -6,17 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.safety.assembly import build_pipeline
 from services.safety.filter import movable_rows
 from services.safety.qp import QPProblem, make_backend
-from shared.config import load_config
 from shared.messages import SafetyMode
+from tests.support.pipelines import DT, alone_at, pipeline_for
 
-DT = 0.002
 
-
-def pipeline_for(backend: str = "daqp", **safety):
-    return build_pipeline(load_config(environ={}, overrides={"safety": {"backend": backend, **safety}}))
 
 
 def cross_arm_reach(neutral: np.ndarray, seconds: float = 3.0) -> np.ndarray:
@@ -69,8 +64,7 @@ def test_solution_satisfies_rows_and_is_nominal_when_free() -> None:
 
 def test_free_space_tracks_u_ref_exactly() -> None:
     p = pipeline_for()
-    p.barrier.set_external(None)
-    p.filter.reset(p.kinematics.q_home)
+    alone_at(p, p.kinematics.q_home)
     q_nom = p.kinematics.q_home + 0.01
     result = p.filter.step(q_nom, DT)
     assert result.mode is SafetyMode.NOMINAL and result.active_rows == 0
@@ -137,8 +131,7 @@ def test_ramp_is_tracked_without_lag_with_feedforward(feedforward: bool) -> None
     paper's u_ref = K (q_nom − q_cbf) trails it by v/K (a lag of 1/K)."""
     p = pipeline_for()
     kin = p.kinematics
-    p.barrier.set_external(None)
-    p.filter.reset(kin.q_home)
+    alone_at(p, kin.q_home)
     rate = np.zeros(8)
     rate[2] = rate[5] = -1.5  # both shoulders pitch forward at 1.5 rad/s (clear of every self pair)
     errors = []

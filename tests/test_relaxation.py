@@ -10,22 +10,17 @@ import numpy as np
 import pytest
 from scipy.optimize import linprog
 
-from services.safety.assembly import build_pipeline
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.filter import RELAXED_TOL
 from services.safety.qp.box import velocity_box
-from shared.config import load_config
 from shared.messages import SafetyMode
+from tests.support.pipelines import DT, alone_at, pipeline_for
 from shared.names import CAPSULE_NAMES
 
-DT = 0.002
 TOL = 1e-6
 FOREARM = CAPSULE_NAMES.index("left_forearm")
 
-
-def pipeline_for(backend: str = "daqp"):
-    return build_pipeline(load_config(environ={}, overrides={"safety": {"backend": backend}}))
 
 
 def stacked(p, q):
@@ -202,8 +197,7 @@ def test_the_acceleration_bound_holds_wherever_the_rows_allow_and_gives_way_only
 
 def test_after_a_reset_the_first_step_is_unbounded_and_its_acceleration_zero() -> None:
     p = pipeline_for()
-    p.barrier.set_external(None)
-    p.filter.reset(p.kinematics.q_home)
+    alone_at(p, p.kinematics.q_home)
     q_nom = p.kinematics.q_home + 0.05
     first = p.filter.step(q_nom, DT)
     assert (np.abs(first.u) > p.filter.params.accel_max * DT).any()  # the velocity box alone
