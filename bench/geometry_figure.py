@@ -29,7 +29,8 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.geometry import GEOMETRIES, configured, scenario_human, title, track  # noqa: E402
-from services.executor.mujoco.sim import PDGains, SimRobot  # noqa: E402
+from services.executor.mujoco.model import PDGains  # noqa: E402
+from services.executor.mujoco.sim import SimRobot  # noqa: E402
 from services.safety.assembly import build_pipeline  # noqa: E402
 from services.safety.barriers.pairs import CollisionGeometry  # noqa: E402
 from services.safety.barriers.boxes import BoxBarrier  # noqa: E402

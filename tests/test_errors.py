@@ -57,8 +57,8 @@ def test_every_exception_we_define_derives_from_the_root_and_its_package_base() 
 
 
 def test_start_up_refusals_of_both_executor_backends_share_a_base() -> None:
-    from services.executor.g1.control import G1StartError
-    from services.executor.mujoco.sim import SimModelError
+    from services.executor.g1.errors import G1StartError
+    from services.executor.mujoco.model import SimModelError
 
     assert issubclass(G1StartError, ExecutorStartError) and issubclass(SimModelError, ExecutorStartError)
     assert issubclass(CertError, SafemimicError)

@@ -16,7 +16,8 @@ from safemimic.evaluate.fidelity import best_delay, direction_errors, lag_ms
 from safemimic.evaluate.person import CameraModel, corrupt, interpolate_skeleton, perceive
 from safemimic.evaluate.source import EvaluationInput, open_input
 from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe
-from services.executor.mujoco.sim import PDGains, SimRobot
+from services.executor.mujoco.model import PDGains
+from services.executor.mujoco.sim import SimRobot
 from services.perception.placement import Placement
 from services.perception.scenarios import get_scenario, scenario_recording
 from services.safety.kinematics import RobotKinematics

@@ -1,4 +1,4 @@
-"""The executor's MuJoCo simulation core (services.executor.mujoco.sim), in-process, with our shipped
+"""The executor's MuJoCo simulation core (services.executor.mujoco: model, contacts, sim), in-process, with our shipped
 G1-class model and with Menagerie's real G1 (meshes): welded base, joint servos, the person's
 capsules, and contact counting including the architecture §10 trap (a mocap capsule inside the welded
 pelvis, which MuJoCo's own contact list never reports)."""
@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from services.executor.mujoco.executor import MujocoExecutor, open_viewer
-from services.executor.mujoco.sim import PDGains, SimModelError, SimRobot
+from services.executor.mujoco.model import PDGains, SimModelError
+from services.executor.mujoco.sim import SimRobot
 from shared.config import ExecutorConfig
 from shared.names import CAPSULE_NAMES
 from shared.robot_spec import RobotSpec, default_robot_spec_path, load_robot_spec

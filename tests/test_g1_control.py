@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.executor.g1.control import TORQUE_FAULT_SAMPLES, G1Controller, G1StartError, Phase, check_frame
+from services.executor.g1.control import TORQUE_FAULT_SAMPLES, G1Controller, Phase, check_frame
+from services.executor.g1.errors import G1StartError
 from services.executor.g1.state import G1State
 from services.executor.g1.frames import lowcmd_crc
 from services.executor.g1.layout import ARM_SDK_HOLD_GAINS, G1_JOINTS, LOWCMD_HOLD_GAINS, WEIGHT_SLOT

@@ -29,8 +29,9 @@ import numpy as np
 from safemimic.evaluate.person import HumanTrack, TruePerson
 from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe
 from services.executor.contacts import ContactReport, ContactTally
+from services.executor.mujoco.contacts import body_contacts
 from services.executor.mujoco.executor import MujocoExecutor
-from services.executor.mujoco.sim import PDGains, body_contacts
+from services.executor.mujoco.model import PDGains
 from services.safety.assembly import SafetyPipeline, build_pipeline
 from services.safety.human_memory import HumanMemory
 from services.safety.nominal import NominalTrack

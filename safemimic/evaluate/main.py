@@ -25,7 +25,7 @@ from safemimic.evaluate.evaluation import evaluate, evaluation_config, write_out
 from safemimic.evaluate.metrics import RUN_KEYS
 from safemimic.evaluate.person import DEFAULT_LATENCY_S, CameraModel
 from safemimic.evaluate.progress import ProgressBar
-from services.executor.mujoco.sim import SimModelError
+from services.executor.mujoco.model import SimModelError
 from services.perception.scenarios import SCENARIOS
 from services.perception.sources import SourceUnavailable
 from services.safety.kinematics import KinematicsError

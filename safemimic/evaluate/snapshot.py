@@ -21,7 +21,8 @@ import numpy as np  # noqa: E402
 
 from safemimic.evaluate.episode import PERCEIVED_PERSON, TRUE_PERSON, Episode, make_executor  # noqa: E402
 from safemimic.evaluate.person import HumanTrack, TruePerson  # noqa: E402
-from services.executor.mujoco.sim import HUMAN_GEOM_GROUP, SimRobot  # noqa: E402
+from services.executor.mujoco.model import HUMAN_GEOM_GROUP  # noqa: E402
+from services.executor.mujoco.sim import SimRobot  # noqa: E402
 from services.safety.kinematics import RobotKinematics  # noqa: E402
 from services.safety.pairs import N_ROBOT  # noqa: E402
 from shared.config import StackConfig  # noqa: E402

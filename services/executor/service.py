@@ -79,7 +79,7 @@ def build_executor(conf: StackConfig) -> Executor:
 
         return G1Executor(spec, c.g1, 1.0 / c.rate_hz)
     from services.executor.mujoco.executor import MujocoExecutor
-    from services.executor.mujoco.sim import PDGains
+    from services.executor.mujoco.model import PDGains
 
     return MujocoExecutor(spec, PDGains.from_config(c), 1.0 / c.rate_hz, c.viewer)
 

@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from services.executor.errors import ExecutorStartError
+from services.executor.g1.errors import G1StartError
 from services.executor.g1.frames import lowcmd_crc, new_lowcmd, seal
 from services.executor.g1.layout import (
     ARM_SDK_HOLD_GAINS,
@@ -65,7 +65,7 @@ from services.executor.g1.state import G1State
 from shared.config import G1ArmSdkJoints, G1Config, G1LockedWaistPolicy, G1Mode, G1Waist
 from shared.robot_spec import RobotSpec
 
-__all__ = ["TORQUE_FAULT_SAMPLES", "G1Controller", "G1StartError", "Phase", "check_frame"]
+__all__ = ["TORQUE_FAULT_SAMPLES", "G1Controller", "Phase", "check_frame"]
 
 log = logging.getLogger("safemimic.executor.g1")
 
@@ -79,11 +79,6 @@ _CHECK_TOLERANCE = 1e-4
 _WAIST_ROLL_PITCH = frozenset({13, 14})
 #: A joint the unit cannot move should be limited to about this much either way in the robot description (rad).
 _LOCKED_RANGE = 0.01
-
-
-class G1StartError(ExecutorStartError, RuntimeError):
-    """The G1 executor will not start (no robot state, unknown or unfit variant); the message says
-    what to check or configure."""
 
 
 class Phase(str, Enum):

@@ -19,14 +19,15 @@ from typing import Any
 
 import numpy as np
 
-from services.executor.g1.control import G1Controller, G1StartError
+from services.executor.g1.control import G1Controller
+from services.executor.g1.errors import G1StartError
 from services.executor.g1.state import G1State
 from services.executor.g1.layout import TOPIC_ARM_SDK, TOPIC_LOWCMD, TOPIC_LOWSTATE
 from services.executor.base import Executor, JointReading
 from shared.config import G1Config, G1Mode
 from shared.robot_spec import RobotSpec
 
-__all__ = ["FINAL_FRAMES", "G1Executor", "G1StartError"]
+__all__ = ["FINAL_FRAMES", "G1Executor"]
 
 log = logging.getLogger("safemimic.executor.g1")
 

@@ -14,7 +14,8 @@ import numpy as np
 
 from services.executor.contacts import ContactReport
 from services.executor.base import Executor, JointReading
-from services.executor.mujoco.sim import HUMAN_GEOM_GROUP, PDGains, SimRobot
+from services.executor.mujoco.model import HUMAN_GEOM_GROUP, PDGains
+from services.executor.mujoco.sim import SimRobot
 from shared.robot_spec import RobotSpec
 
 __all__ = ["MAX_PHYSICS_STEP_S", "MujocoExecutor", "open_viewer"]
