@@ -27,7 +27,7 @@ from bench.common import percentiles_us, time_calls
 from services.perception.pipeline import PerceptionPipeline
 from services.perception.placement import parse_placement
 from services.perception.scenarios import get_scenario, scenario_frames
-from services.perception.stream import SkeletonFrame
+from services.perception.base import SkeletonFrame
 from shared.codec import encode
 from shared.config import HumanConfig, PerceptionConfig
 from shared.names import KEYPOINT_INDEX

@@ -299,7 +299,7 @@ def test_a_windmill_never_jumps_an_angle_or_the_robot_target() -> None:
     no angle changes by π or more between frames, θ stays in [seam − 2π, seam], and q_nom moves at
     most 0.2 rad per frame while the arm moves 2° (before: pitch jumped 2π, q_nom ≈ 4.3 rad)."""
     from services.perception.pipeline import PerceptionPipeline
-    from services.perception.stream import SkeletonFrame
+    from services.perception.base import SkeletonFrame
     from services.safety.assembly import make_retargeter
     from services.safety.kinematics import RobotKinematics
     from shared.config import load_config

@@ -11,7 +11,7 @@ from services.perception.capsules import HumanCapsules
 from shared.body import capsule_radii
 from services.perception.pipeline import PerceptionPipeline
 from services.perception.point_filter import PointFilter
-from services.perception.stream import SkeletonFrame
+from services.perception.base import SkeletonFrame
 from services.perception.synthetic import skeleton
 from shared.config import HumanConfig, PerceptionConfig, PointFilterConfig
 from shared.geometry import segment_closest_points

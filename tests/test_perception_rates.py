@@ -10,7 +10,7 @@ import pytest
 
 from services.perception.angles import AngleRates
 from services.perception.pipeline import PerceptionPipeline
-from services.perception.stream import SkeletonFrame
+from services.perception.base import SkeletonFrame
 from services.perception.synthetic import skeleton
 from shared.codec import decode, encode
 from shared.config import HumanConfig, PerceptionConfig

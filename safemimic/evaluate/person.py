@@ -34,7 +34,7 @@ from services.perception.angles import PoseEstimator
 from services.perception.capsules import HumanCapsules
 from services.perception.pipeline import PerceptionCounters, PerceptionPipeline
 from services.perception.point_filter import FilteredSkeleton
-from services.perception.stream import SkeletonFrame
+from services.perception.base import SkeletonFrame
 from services.safety.retarget import Retargeter
 from shared.config import StackConfig
 from shared.messages import HumanState

@@ -12,7 +12,7 @@ import threading
 from dataclasses import dataclass
 
 from services.perception.sources import open_source
-from services.perception.stream import SkeletonFrame
+from services.perception.base import SkeletonFrame
 from shared.config import StackConfig
 
 

@@ -14,7 +14,7 @@ import numpy as np
 from services.perception.angles import AngleRates, PoseEstimator
 from services.perception.capsules import HumanCapsules
 from services.perception.point_filter import PointFilter
-from services.perception.stream import SkeletonFrame
+from services.perception.base import SkeletonFrame
 from shared.config import HumanConfig, PerceptionConfig
 from shared.messages import HumanState
 from shared.names import KEYPOINT_NAMES

@@ -30,7 +30,7 @@ from typing import Any
 
 from services.perception.pipeline import PerceptionPipeline
 from services.perception.sources import SourceUnavailable, open_source
-from services.perception.stream import SkeletonFrame, SkeletonSource
+from services.perception.base import SkeletonFrame, SkeletonSource
 from shared.bus import Bus, topic_key
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import ConfigError, PerceptionConfig, SkeletonSourceName, StackConfig, validate_config

@@ -1,6 +1,6 @@
 """Skeleton sources by configuration: ``replay`` (a .npz recording), ``scenario`` (scripted), ``camera``, ``zed``.
 
-Every source is a :class:`~services.perception.stream.SkeletonSource` yielding robot-frame frames.
+Every source is a :class:`~services.perception.base.SkeletonSource` yielding robot-frame frames.
 The live sources, ``camera`` (OpenCV capture + BlazePose monocular 3D pose) and ``zed`` (ZED SDK
 body tracking), live in :mod:`services.perception.camera` and are imported only when configured
 (their runtimes are the ``camera`` extra and the ZED SDK); they yield frames already in the robot
@@ -15,7 +15,7 @@ import numpy as np
 from services.perception.errors import PerceptionError
 from services.perception.placement import parse_placement, place_recording
 from services.perception.scenarios import get_scenario, scenario_frames
-from services.perception.stream import PlayedSource, SkeletonSource
+from services.perception.base import PlayedSource, SkeletonSource
 from shared.body import Body
 from shared.config import PerceptionConfig, SkeletonSourceName, resolve_config_path
 from shared.skeleton import RecordingError, read_recording

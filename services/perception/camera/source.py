@@ -5,7 +5,7 @@ camera is asked for ``width`` × ``height`` at ``fps``; frames are stamped with 
 when read (``t`` = ``captured``) and never paced (the camera paces). A video file plays at its
 own frame rate (``t`` = frame index / file rate, paced unless ``perception.realtime`` is false).
 
-Every frame yields a :class:`~services.perception.stream.SkeletonFrame`: the person's keypoints
+Every frame yields a :class:`~services.perception.base.SkeletonFrame`: the person's keypoints
 (:func:`~services.perception.camera.geometry.blazepose_skeleton`), or all missing when nobody is
 seen. A frame whose processing raises is counted and skipped. The stream ends when the file ends
 or the camera stops delivering frames (unplugged), with the reason in the log and :meth:`counters`.
@@ -28,7 +28,7 @@ from services.perception.camera.blazepose import BlazePose
 from services.perception.camera.geometry import blazepose_skeleton, camera_matrix, missing_skeleton, optical_to_robot
 from services.perception.camera.model import ModelError, locate_models, model_dir
 from services.perception.sources import SourceUnavailable
-from services.perception.stream import Pacer, SkeletonFrame
+from services.perception.base import Pacer, SkeletonFrame
 from shared.config import CameraConfig, PerceptionConfig
 
 log = logging.getLogger("safemimic.perception.camera")
@@ -48,7 +48,7 @@ class CameraCounters:
 
 
 class CameraSource:
-    """A :class:`~services.perception.stream.SkeletonSource` over an opened capture (see module doc)."""
+    """A :class:`~services.perception.base.SkeletonSource` over an opened capture (see module doc)."""
 
     def __init__(self, capture: cv2.VideoCapture, estimator: BlazePose, conf: PerceptionConfig, is_file: bool) -> None:
         self.capture = capture

@@ -32,7 +32,7 @@ from services.perception.camera.geometry import (
     missing_skeleton,
 )
 from services.perception.sources import SourceUnavailable
-from services.perception.stream import SkeletonFrame
+from services.perception.base import SkeletonFrame
 from shared.config import PerceptionConfig
 
 log = logging.getLogger("safemimic.perception.zed")
@@ -94,7 +94,7 @@ def zed_skeleton(
 
 
 class ZedSource:
-    """A :class:`~services.perception.stream.SkeletonSource` over an opened ``pyzed.sl.Camera``."""
+    """A :class:`~services.perception.base.SkeletonSource` over an opened ``pyzed.sl.Camera``."""
 
     def __init__(self, sl: Any, camera: Any, conf: PerceptionConfig, is_file: bool) -> None:
         self.sl = sl
