@@ -32,7 +32,7 @@ from typing import ClassVar
 import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
-from services.safety.barriers.kernel import pair_distances, pair_rows
+from services.safety.barriers.kernel import masked_min, pair_distances, pair_rows
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.geometry import EPS_NORMAL, safe_normal, segment_closest_points
 
@@ -52,8 +52,8 @@ class BarrierRows(RowBlock):
 
     def min_h(self, self_rows: bool) -> float | None:
         """Minimum h over enabled self (or robot–human) rows; None if there is none."""
-        mask = self.enabled & (self.is_self if self_rows else ~self.is_self)
-        return float(self.h[mask].min()) if mask.any() else None
+        count, low = masked_min(self.h, self.enabled, self.is_self, self_rows)
+        return float(low) if count else None
 
 
 def swept_witness_points(segments: np.ndarray, radii: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
