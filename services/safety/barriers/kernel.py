@@ -101,6 +101,18 @@ def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, ga
 
 
 @njit(cache=True, nogil=True)
+def segment_pairs(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead, eps,
+                  distance, h, s, t, normal, A, b):  # pragma: no cover - compiled
+    """:func:`pair_distances`, then :func:`pair_rows` in the same call unless a row needs a fallback
+    normal; returns how many do (then A and b are not written: the caller supplies the normals and
+    calls :func:`pair_rows`)."""
+    need = pair_distances(segments, radii, first, second, phi, eps, distance, h, s, t, normal)
+    if need == 0:
+        pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
+    return need
+
+
+@njit(cache=True, nogil=True)
 def joint_rows(q, index, sign, bound, gamma, accel, share, bounded, h, b):  # pragma: no cover - compiled
     """Joint barrier rows: h_i = sign_i (q_{index_i} − bound_i), b_i = −α(h_i) with α(h) = γ h, or where
     ``bounded`` and h > 0, min(γ h, √(2 ``share`` a h)) (a = ``accel`` of that joint)."""

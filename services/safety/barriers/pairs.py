@@ -32,7 +32,7 @@ from typing import ClassVar
 import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
-from services.safety.barriers.kernel import masked_min, pair_distances, pair_rows
+from services.safety.barriers.kernel import masked_min, pair_rows, segment_pairs
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.geometry import EPS_NORMAL, safe_normal, segment_closest_points
 
@@ -78,22 +78,22 @@ def segment_rows(
     lookahead: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rows (A (m, n), b (m,), h (m,), distance (m,)) of the sphere-swept segments ``segments``
-    (S, 2, 3) with ``radii`` (S,): closest points, h and normals
-    (:func:`~services.safety.barriers.kernel.pair_distances`), then A and b
-    (:func:`~services.safety.barriers.kernel.pair_rows`). The first ``n_robot`` segments are the
+    (S, 2, 3) with ``radii`` (S,): closest points, h and normals, then A and b, in one compiled call
+    (:func:`~services.safety.barriers.kernel.segment_pairs`). The first ``n_robot`` segments are the
     robot's, with endpoint Jacobians ``jacobians`` (n_robot, 2, 3, n); the others are external
     (zero Jacobian), with endpoint ``velocities`` (S, 2, 3). Row i pairs segment ``first[i]``
     (robot) with ``second[i]``. A zero-length segment is a sphere."""
     m = len(first)
-    distance, h, s, t = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    distance, h, s, t = np.empty((4, m))  # one allocation; each a contiguous row
     normal = np.empty((m, 3))
-    need = pair_distances(segments, radii, first, second, phi, EPS_NORMAL, distance, h, s, t, normal)
-    if need:  # segments touching or crossing: the documented deterministic fallback normal
+    A, b = np.empty((m, jacobians.shape[3])), np.empty(m)
+    need = segment_pairs(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead,
+                         EPS_NORMAL, distance, h, s, t, normal, A, b)
+    if need:  # segments touching or crossing: the documented deterministic fallback normal, then the rows
         rows = np.flatnonzero(distance < EPS_NORMAL)
         ea, eb = segments[first[rows]], segments[second[rows]]
         normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
-    A, b = np.empty((m, jacobians.shape[3])), np.empty(m)
-    pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
+        pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
     return A, b, h, distance
 
 
