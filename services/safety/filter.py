@@ -61,8 +61,8 @@ evaluator's no-CBF run).
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from itertools import chain
 from dataclasses import dataclass
+from itertools import chain
 
 import numpy as np
 

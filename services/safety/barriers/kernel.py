@@ -104,12 +104,17 @@ def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, ga
 def segment_pairs(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead, eps,
                   distance, h, s, t, normal, A, b):  # pragma: no cover - compiled
     """:func:`pair_distances`, then :func:`pair_rows` in the same call unless a row needs a fallback
-    normal; returns how many do (then A and b are not written: the caller supplies the normals and
-    calls :func:`pair_rows`)."""
+    normal; returns (how many do (then A and b are not written: the caller supplies the normals and
+    calls :func:`pair_rows`), the smallest h (NaN if any h is; inf: no row))."""
     need = pair_distances(segments, radii, first, second, phi, eps, distance, h, s, t, normal)
     if need == 0:
         pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
-    return need
+    low = np.inf
+    for i in range(h.shape[0]):
+        if h[i] != h[i]:
+            return need, h[i]
+        low = min(low, h[i])
+    return need, low
 
 
 @njit(cache=True, nogil=True)

@@ -76,8 +76,8 @@ def segment_rows(
     gamma: float,
     phi: float,
     lookahead: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rows (A (m, n), b (m,), h (m,), distance (m,)) of the sphere-swept segments ``segments``
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Rows (A (m, n), b (m,), h (m,), distance (m,), min h (inf: no row)) of the sphere-swept segments ``segments``
     (S, 2, 3) with ``radii`` (S,): closest points, h and normals, then A and b, in one compiled call
     (:func:`~services.safety.barriers.kernel.segment_pairs`). The first ``n_robot`` segments are the
     robot's, with endpoint Jacobians ``jacobians`` (n_robot, 2, 3, n); the others are external
@@ -87,14 +87,14 @@ def segment_rows(
     distance, h, s, t = np.empty((4, m))  # one allocation; each a contiguous row
     normal = np.empty((m, 3))
     A, b = np.empty((m, jacobians.shape[3])), np.empty(m)
-    need = segment_pairs(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead,
+    need, min_h = segment_pairs(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead,
                          EPS_NORMAL, distance, h, s, t, normal, A, b)
     if need:  # segments touching or crossing: the documented deterministic fallback normal, then the rows
         rows = np.flatnonzero(distance < EPS_NORMAL)
         ea, eb = segments[first[rows]], segments[second[rows]]
         normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
         pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
-    return A, b, h, distance
+    return A, b, h, distance, float(min_h)
 
 
 class CollisionGeometry(Barrier):
@@ -182,8 +182,10 @@ class CollisionGeometry(Barrier):
         """(m, 2, 3) the closest points of every row's two colliders at the last evaluation: p_A on
         the robot's, p_B on the other (the constraint lines of the paper's Fig. 4)."""
 
-    def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray) -> BarrierRows:
-        """Package the rows, disabling those of missing external capsules."""
+    def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray,
+              min_h: float | None = None) -> BarrierRows:
+        """Package the rows, disabling those of missing external capsules; ``min_h``: the smallest h
+        of all rows when the caller has it (None: computed here)."""
         if not self._all_enabled:
             enabled = self._valid[self._row_capsule]
             A[~enabled] = 0.0
@@ -192,7 +194,7 @@ class CollisionGeometry(Barrier):
             min_h_all = float(h[enabled].min()) if enabled.any() else float("inf")
         else:
             enabled = self._row_all_enabled
-            min_h_all = float(h.min()) if len(h) else float("inf")
+            min_h_all = min_h if min_h is not None else float(h.min()) if len(h) else float("inf")
         return BarrierRows(A=A, b=b, soft=self._row_soft, h=h, distance=distance, enabled=enabled,
                            is_self=self._row_is_self, min_h_all=min_h_all)
 
