@@ -100,15 +100,16 @@ def movable_rows(A: np.ndarray) -> np.ndarray:
     return out
 
 
-def stack_movable(blocks: Sequence[RowBlock]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(A, b, soft, kept): the rows of every block stacked in order, only those :func:`movable_rows`
-    keeps; ``kept`` their indices among all the stacked rows. Fresh arrays (a QP may hold them)."""
-    A = np.concatenate([block.A for block in blocks])
-    m, n = A.shape
-    A_out, b_out, soft_out, kept = np.empty((m, n)), np.empty(m), np.empty(m, bool), np.empty(m, np.intp)
-    k = keep_movable(A, np.concatenate([block.b for block in blocks]), np.concatenate([block.soft for block in blocks]),
-                     _STATIC_ROW, A_out, b_out, soft_out, kept)
-    return A_out[:k], b_out[:k], soft_out[:k], kept[:k]
+def stack_movable(blocks: Sequence[RowBlock], m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, b, soft, kept): the rows of every block (``m`` in all) stacked in order, only those
+    :func:`movable_rows` keeps; ``kept`` their indices among all the stacked rows. Fresh arrays (a QP
+    may hold them)."""
+    A, b, soft, kept = np.empty((m, blocks[0].A.shape[1])), np.empty(m), np.empty(m, bool), np.empty(m, np.intp)
+    k = start = 0
+    for block in blocks:
+        k = keep_movable(block.A, block.b, block.soft, _STATIC_ROW, start, A, b, soft, kept, k)
+        start += block.b.shape[0]
+    return A[:k], b[:k], soft[:k], kept[:k]
 
 
 def min_h_self(blocks: Sequence[RowBlock]) -> float | None:
@@ -248,7 +249,7 @@ class SafetyFilter:
             # capsule's disabled row) hold or fail whatever u is: they are left out of the QP, where a
             # failing one would only make it infeasible (a person touching a static link is an
             # intrusion, reported below, not a row the robot could honour).
-            A, b, soft, kept = stack_movable(blocks)
+            A, b, soft, kept = stack_movable(blocks, len(self.row_names))
         else:
             A, b, soft = rows.A[:0], rows.b[:0], rows.soft[:0]
             kept = np.arange(0)

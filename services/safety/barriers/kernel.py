@@ -150,17 +150,16 @@ def movable_mask(A, tol, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def keep_movable(A, b, soft, tol, A_out, b_out, soft_out, kept):  # pragma: no cover - compiled
-    """Copy the rows of (A, b, soft) that move (:func:`_moves`) to the front of the outputs, their
-    indices to ``kept``; returns how many."""
-    k = 0
+def keep_movable(A, b, soft, tol, start, A_out, b_out, soft_out, kept, k):  # pragma: no cover - compiled
+    """Append the rows of one block (A, b, soft) that move (:func:`_moves`) to the outputs from their
+    row k on, with their indices (``start`` + row in the block) in ``kept``; returns the new k."""
     for i in range(A.shape[0]):
         if _moves(A, i, tol):
             for j in range(A.shape[1]):
                 A_out[k, j] = A[i, j]
             b_out[k] = b[i]
             soft_out[k] = soft[i]
-            kept[k] = i
+            kept[k] = start + i
             k += 1
     return k
 
