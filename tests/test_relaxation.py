@@ -14,7 +14,6 @@ from services.safety.assembly import build_pipeline
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.filter import RELAXED_TOL
-from services.safety.qp.box import velocity_box
 from shared.config import load_config
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
@@ -247,8 +246,7 @@ def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> 
         A, b, soft = stacked(p, q)
         p.filter.reset(q)
         p.filter._u_prev = rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)  # noqa: SLF001 (the state a previous step leaves)
-        lower, upper = velocity_box(q, p.kinematics.q_min, p.kinematics.q_max, None, p.filter.params.u_max, DT)
-        bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, lower, upper, DT))  # noqa: SLF001
+        bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, DT))  # noqa: SLF001
         brake = np.clip(0.0, bounded_lower, bounded_upper)
         result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT)
         lhs = A @ result.u

@@ -71,7 +71,7 @@ from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
 from services.safety.barriers.kernel import keep_movable, movable_mask
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
-from services.safety.qp.box import braking_box, clip_and_step, reach_box, velocity_box
+from services.safety.qp.box import bounded_box, clip_and_step, reach_box, velocity_box
 from shared.messages import SafetyMode
 
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
@@ -243,7 +243,6 @@ class SafetyFilter:
         u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - q)
         if dq_nom is not None:
             u_ref = u_ref + np.asarray(dq_nom, dtype=np.float64)
-        lower, upper = velocity_box(q, self.q_min, self.q_max, p.u_min, p.u_max, dt)
         if self.enforce:
             # Rows no velocity can change (a pair of a static link such as a locked thigh, a missing
             # capsule's disabled row) hold or fail whatever u is: they are left out of the QP, where a
@@ -253,7 +252,7 @@ class SafetyFilter:
         else:
             A, b, soft = rows.A[:0], rows.b[:0], rows.soft[:0]
             kept = np.arange(0)
-        boxes = self._boxes(q, lower, upper, dt)
+        boxes = self._boxes(q, dt)
         first = next(boxes)
         lower, upper, honours = first
         problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
@@ -302,27 +301,29 @@ class SafetyFilter:
             gave_way=gave_way, min_h_self=min_h_self(blocks), ddq=ddq,
         )
 
-    def _boxes(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-               dt: float) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
+    def _boxes(self, q: np.ndarray, dt: float) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
         """The velocity boxes to try in order, each (lower, upper, honours the acceleration bound),
         computed when asked for (the first suffices unless the QP is infeasible).
 
         Without a bound (none configured, or the first step after a reset): the velocity box
-        ``[lower, upper]`` alone. With one (a, rad/s²): the velocity box narrowed so that a joint
+        (:func:`~services.safety.qp.box.velocity_box`) alone. With one (a, rad/s²): the velocity box
+        narrowed so that a joint
         can still stop at its limit decelerating at a' = β a (β = BRAKE_SHARE; d the distance left:
         |u| ≤ √(2a'd + (a'Δt/2)²) − a'Δt/2, the speed from which steps of a'Δt brake to rest within
         d; 0 stays inside), then
         intersected with [u_prev − f aΔt, u_prev + f aΔt] for f in :data:`ACCEL_WIDENING`, then that
         narrowed box alone. A bound clipped into the box is non-empty but no longer honoured where
-        the box lies wholly beyond it (a velocity bound lowered at run time). ``lower`` and ``upper``
-        may be narrowed in place."""
-        a, u_prev = self.params.accel_max, self._u_prev
+        the box lies wholly beyond it (a velocity bound lowered at run time)."""
+        p, u_prev = self.params, self._u_prev
+        a = p.accel_max
         if a is None or u_prev is None:
-            yield lower, upper, True
+            yield (*velocity_box(q, self.q_min, self.q_max, p.u_min, p.u_max, dt), True)
             return
-        braking_box(q, self.q_min, self.q_max, a, BRAKE_SHARE, dt, lower, upper)
+        lower, upper, low, high, within = bounded_box(q, self.q_min, self.q_max, p.u_min, p.u_max, a, BRAKE_SHARE,
+                                                      u_prev, ACCEL_WIDENING[0], dt)
         for factor in ACCEL_WIDENING:
-            low, high, within = reach_box(u_prev, a, factor, dt, lower, upper)
+            if factor != ACCEL_WIDENING[0]:
+                low, high, within = reach_box(u_prev, a, factor, dt, lower, upper)
             yield low, high, factor == 1.0 and within
         yield lower, upper, False
 

@@ -71,6 +71,14 @@ def _reach(u_prev, a, factor, dt, lower, upper, low, high):  # pragma: no cover 
     return within
 
 
+@njit(cache=True, nogil=True)
+def _bounded(q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, factor, dt, lower, upper, low,
+             high):  # pragma: no cover - compiled
+    _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper)
+    _brake(q, q_min, q_max, accel, share, dt, lower, upper)
+    return _reach(u_prev, accel, factor, dt, lower, upper, low, high)
+
+
 def velocity_box(q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray,
                  dt: float) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) (n,): the velocity bounds (u_min; None: −u_max) intersected with the joint
@@ -89,14 +97,6 @@ def clip_and_step(u: np.ndarray, lower: np.ndarray, upper: np.ndarray, q: np.nda
     return u_out, (q_out if finite else None)
 
 
-def braking_box(q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, accel: np.ndarray, share: float, dt: float,
-                lower: np.ndarray, upper: np.ndarray) -> None:
-    """Narrow the velocity box ``[lower, upper]`` (n,) in place so that every joint can still stop at
-    its limit decelerating at ``share`` × ``accel`` (n,) rad/s² in steps of ``dt`` (module
-    docstring); lower ≤ upper stays."""
-    _brake(q, q_min, q_max, accel, share, dt, lower, upper)
-
-
 def reach_box(u_prev: np.ndarray, accel: np.ndarray, factor: float, dt: float, lower: np.ndarray,
               upper: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """(low, high, within) (n,): ``[u_prev − factor·accel·dt, u_prev + factor·accel·dt]`` clipped into
@@ -105,3 +105,17 @@ def reach_box(u_prev: np.ndarray, accel: np.ndarray, factor: float, dt: float, l
     low, high = np.empty(u_prev.shape[0]), np.empty(u_prev.shape[0])
     within = _reach(u_prev, accel, factor, dt, lower, upper, low, high)
     return low, high, within
+
+
+def bounded_box(q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray,
+                accel: np.ndarray, share: float, u_prev: np.ndarray, factor: float,
+                dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """(lower, upper, low, high, within): :func:`velocity_box` narrowed so that every joint can still
+    stop at its limit decelerating at ``share`` × ``accel`` (n,) rad/s² in steps of ``dt`` (module
+    docstring; lower ≤ upper stays), and :func:`reach_box` of ``factor`` in it (the same values), in
+    one compiled call."""
+    n = q.shape[0]
+    lower, upper, low, high = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    within = _bounded(q, q_min, q_max, u_max if u_min is None else u_min, u_max, u_min is None, accel, share, u_prev,
+                      factor, dt, lower, upper, low, high)
+    return lower, upper, low, high, within
