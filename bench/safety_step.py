@@ -60,7 +60,7 @@ from typing import Any
 import numpy as np
 
 from bench.common import percentiles_us
-from services.safety.assembly import build_pipeline, make_geometry
+from services.safety.assembly import build_pipeline, make_geometry, make_static_barrier
 from services.safety.barriers.capsules import CapsuleBarrier
 from services.safety.filter import FilterParams, SafetyFilter
 from services.safety.pairs import N_ROBOT, PairSet, sized_pair_set
@@ -166,11 +166,13 @@ class Run:
 
 def make_filter(kinematics, pairs: PairSet, conf, backend: str) -> SafetyFilter:
     """As assembly.build_pipeline does: the configured collision geometry (``safety.geometry``,
-    capsules by default) of ``pairs`` with the scene's people, and a SafetyFilter."""
+    capsules by default) of ``pairs`` with the scene's people, and a SafetyFilter with the static
+    capsule rows (so the floor's recorded QP has the rows of the step it is compared with)."""
     barrier = make_geometry(conf, pairs, kinematics)
     ends, radii = external_capsules(pairs.n_external)
     barrier.set_external(ends, radii, np.ones(len(radii), bool), np.zeros_like(ends))
-    return SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), backend)
+    return SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), backend,
+                        extra=[make_static_barrier(conf, kinematics)])
 
 
 class FilterRunner:

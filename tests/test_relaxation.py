@@ -13,10 +13,9 @@ from scipy.optimize import linprog
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.filter import RELAXED_TOL
-from services.safety.qp.box import velocity_box
 from shared.messages import SafetyMode
-from tests.support.pipelines import DT, alone_at, pipeline_for
 from shared.names import CAPSULE_NAMES
+from tests.support.pipelines import DT, alone_at, pipeline_for
 
 TOL = 1e-6
 FOREARM = CAPSULE_NAMES.index("left_forearm")
@@ -241,8 +240,7 @@ def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> 
         A, b, soft = stacked(p, q)
         p.filter.reset(q)
         p.filter._u_prev = rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)  # noqa: SLF001 (the state a previous step leaves)
-        lower, upper = velocity_box(q, p.kinematics.q_min, p.kinematics.q_max, None, p.filter.params.u_max, DT)
-        bounded_lower, bounded_upper, _ = p.filter._boxes(q, lower, upper, DT)[0]  # noqa: SLF001
+        bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, DT))  # noqa: SLF001
         brake = np.clip(0.0, bounded_lower, bounded_upper)
         result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT)
         lhs = A @ result.u

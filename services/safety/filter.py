@@ -60,16 +60,18 @@ evaluator's no-CBF run).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from itertools import chain
 
 import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
+from services.safety.barriers.kernel import keep_movable, movable_mask
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
-from services.safety.qp.box import clip_and_step, velocity_box
+from services.safety.qp.box import bounded_box, clip_and_step, reach_box, velocity_box
 from shared.messages import SafetyMode
 
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
@@ -93,7 +95,21 @@ ACCEL_BOUND = "accel_max"
 def movable_rows(A: np.ndarray) -> np.ndarray:
     """(m,) bool: the rows of A (m, n) some velocity can change; the others (a pair of a static link
     such as a locked thigh, a disabled row) hold or fail whatever u is and stay out of the QP."""
-    return np.abs(A).max(axis=1, initial=0.0) > _STATIC_ROW
+    out = np.empty(A.shape[0], bool)
+    movable_mask(A, _STATIC_ROW, out)
+    return out
+
+
+def stack_movable(blocks: Sequence[RowBlock], m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, b, soft, kept): the rows of every block (``m`` in all) stacked in order, only those
+    :func:`movable_rows` keeps; ``kept`` their indices among all the stacked rows. Fresh arrays (a QP
+    may hold them)."""
+    A, b, soft, kept = np.empty((m, blocks[0].A.shape[1])), np.empty(m), np.empty(m, bool), np.empty(m, np.intp)
+    k = start = 0
+    for block in blocks:
+        k = keep_movable(block.A, block.b, block.soft, _STATIC_ROW, start, A, b, soft, kept, k)
+        start += block.b.shape[0]
+    return A[:k], b[:k], soft[:k], kept[:k]
 
 
 def min_h_self(blocks: Sequence[RowBlock]) -> float | None:
@@ -227,23 +243,18 @@ class SafetyFilter:
         u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - q)
         if dq_nom is not None:
             u_ref = u_ref + np.asarray(dq_nom, dtype=np.float64)
-        lower, upper = velocity_box(q, self.q_min, self.q_max, p.u_min, p.u_max, dt)
         if self.enforce:
-            A = np.vstack([block.A for block in blocks])
-            b = np.concatenate([block.b for block in blocks])
-            soft = np.concatenate([block.soft for block in blocks])
             # Rows no velocity can change (a pair of a static link such as a locked thigh, a missing
             # capsule's disabled row) hold or fail whatever u is: they are left out of the QP, where a
             # failing one would only make it infeasible (a person touching a static link is an
             # intrusion, reported below, not a row the robot could honour).
-            kept = np.flatnonzero(movable_rows(A))
-            if len(kept) < len(b):
-                A, b, soft = A[kept], b[kept], soft[kept]
+            A, b, soft, kept = stack_movable(blocks, len(self.row_names))
         else:
             A, b, soft = rows.A[:0], rows.b[:0], rows.soft[:0]
             kept = np.arange(0)
-        boxes = self._boxes(q, lower, upper, dt)
-        lower, upper, honours = boxes[0]
+        boxes = self._boxes(q, dt)
+        first = next(boxes)
+        lower, upper, honours = first
         problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
@@ -256,7 +267,7 @@ class SafetyFilter:
                 mode = SafetyMode.RELAXED
             active = solution.active_rows
         else:
-            for lower, upper, honours in boxes:  # the acceleration bound, widened, then none
+            for lower, upper, honours in chain((first,), boxes):  # the acceleration bound, widened, then none
                 problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
                 u, slack, seconds = self._relax(problem, soft)
                 qp_time += seconds
@@ -290,32 +301,31 @@ class SafetyFilter:
             gave_way=gave_way, min_h_self=min_h_self(blocks), ddq=ddq,
         )
 
-    def _boxes(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-               dt: float) -> list[tuple[np.ndarray, np.ndarray, bool]]:
-        """The velocity boxes to try in order, each (lower, upper, honours the acceleration bound).
+    def _boxes(self, q: np.ndarray, dt: float) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
+        """The velocity boxes to try in order, each (lower, upper, honours the acceleration bound),
+        computed when asked for (the first suffices unless the QP is infeasible).
 
         Without a bound (none configured, or the first step after a reset): the velocity box
-        ``[lower, upper]`` alone. With one (a, rad/s²): the velocity box narrowed so that a joint
+        (:func:`~services.safety.qp.box.velocity_box`) alone. With one (a, rad/s²): the velocity box
+        narrowed so that a joint
         can still stop at its limit decelerating at a' = β a (β = BRAKE_SHARE; d the distance left:
         |u| ≤ √(2a'd + (a'Δt/2)²) − a'Δt/2, the speed from which steps of a'Δt brake to rest within
         d; 0 stays inside), then
         intersected with [u_prev − f aΔt, u_prev + f aΔt] for f in :data:`ACCEL_WIDENING`, then that
         narrowed box alone. A bound clipped into the box is non-empty but no longer honoured where
         the box lies wholly beyond it (a velocity bound lowered at run time)."""
-        a = self.params.accel_max
-        if a is None or self._u_prev is None:
-            return [(lower, upper, True)]
-        brake = BRAKE_SHARE * a
-        half = 0.5 * brake * dt
-        upper = np.minimum(upper, np.sqrt(2.0 * brake * np.maximum(self.q_max - q, 0.0) + half * half) - half)
-        lower = np.minimum(np.maximum(lower, half - np.sqrt(2.0 * brake * np.maximum(q - self.q_min, 0.0) + half * half)), upper)
-        boxes = []
+        p, u_prev = self.params, self._u_prev
+        a = p.accel_max
+        if a is None or u_prev is None:
+            yield (*velocity_box(q, self.q_min, self.q_max, p.u_min, p.u_max, dt), True)
+            return
+        lower, upper, low, high, within = bounded_box(q, self.q_min, self.q_max, p.u_min, p.u_max, a, BRAKE_SHARE,
+                                                      u_prev, ACCEL_WIDENING[0], dt)
         for factor in ACCEL_WIDENING:
-            reach = factor * a * dt
-            low, high = self._u_prev - reach, self._u_prev + reach
-            honours = factor == 1.0 and bool((low <= upper).all() and (high >= lower).all())
-            boxes.append((np.clip(low, lower, upper), np.clip(high, lower, upper), honours))
-        return [*boxes, (lower, upper, False)]
+            if factor != ACCEL_WIDENING[0]:
+                low, high, within = reach_box(u_prev, a, factor, dt, lower, upper)
+            yield low, high, factor == 1.0 and within
+        yield lower, upper, False
 
     def _relax(self, problem: QPProblem, soft: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, float]:
         """The lexicographic relaxed solve (module docstring): (u or None, slacks (m,), seconds).

@@ -17,6 +17,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
+from services.safety.barriers.kernel import joint_rows
 
 #: The share of a joint's acceleration bound it counts on to stop at a barrier or a joint limit (the
 #: rest is left to the other rows and joints competing for the same step).
@@ -37,17 +38,19 @@ class JointBarrier(Barrier):
         index, sign, bound = (np.array(v, dtype=float) for v in (zip(*rows) if rows else ((), (), ())))
         self.index = index.astype(np.intp)
         self.sign, self.bound = sign, bound
+        self._unbounded = np.zeros(len(joint_names))  # the kernel's accel argument without a bound (never read)
         self._A = sign[:, None] * np.eye(len(joint_names))[self.index]
         self._soft = np.zeros(len(self.index), bool)
         self._names = tuple(f"{joint_names[j]}{'>=' if sgn > 0 else '<='}{bound:g}" for j, sgn, bound in rows)
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
                         lookahead: float, accel: np.ndarray | None = None) -> RowBlock:
-        h = self.sign * (q[self.index] - self.bound)
-        alpha = gamma * h
-        if accel is not None:
-            alpha = np.where(h > 0.0, np.minimum(alpha, np.sqrt(2.0 * BRAKE_SHARE * accel[self.index] * np.maximum(h, 0.0))), alpha)
-        return RowBlock(A=self._A, b=-alpha, soft=self._soft, h=h)
+        m = self.index.shape[0]
+        h, b = np.empty(m), np.empty(m)
+        bounded = accel is not None
+        joint_rows(q, self.index, self.sign, self.bound, gamma, accel if bounded else self._unbounded, BRAKE_SHARE,
+                   bounded, h, b)
+        return RowBlock(A=self._A, b=b, soft=self._soft, h=h)
 
     def row_names(self) -> tuple[str, ...]:
         return self._names

@@ -1,9 +1,12 @@
-"""Compiled (numba) inner loops of the capsule barrier: one pass over the monitored pairs.
+"""Compiled (numba) inner loops of the barriers: one pass over the monitored pairs, the joint
+barriers' rows, the rows a velocity can move, the smallest h of a row group.
 
 The math is the same as ``shared.geometry.segment_closest_points`` (Ericson §5.1.9, cross-product
 form, three clamped steps) and ``services.safety.barriers.capsules`` (eqs. 4–7), written as scalar loops
 so that a 72-pair step costs a few microseconds instead of ~100 numpy calls. Tests check both
-kernels against the vectorised geometry and against finite differences.
+kernels against the vectorised geometry and against finite differences. The other kernels do the
+same IEEE operations as the numpy expressions they replace (a NaN propagates through a maximum or a
+minimum as in numpy), so their results are bit-identical.
 """
 
 from __future__ import annotations
@@ -95,3 +98,80 @@ def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, ga
                 v_known += normal[i, c] * (wb0 * velocities[ib, 0, c] + wb1 * velocities[ib, 1, c])
         approach = max(v_known, 0.0)
         b[i] = -gamma * (h[i] - lookahead * approach) + approach
+
+
+@njit(cache=True, nogil=True)
+def segment_pairs(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead, eps,
+                  distance, h, s, t, normal, A, b):  # pragma: no cover - compiled
+    """:func:`pair_distances`, then :func:`pair_rows` in the same call unless a row needs a fallback
+    normal; returns (how many do (then A and b are not written: the caller supplies the normals and
+    calls :func:`pair_rows`), the smallest h (NaN if any h is; inf: no row))."""
+    need = pair_distances(segments, radii, first, second, phi, eps, distance, h, s, t, normal)
+    if need == 0:
+        pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
+    low = np.inf
+    for i in range(h.shape[0]):
+        if h[i] != h[i]:
+            return need, h[i]
+        low = min(low, h[i])
+    return need, low
+
+
+@njit(cache=True, nogil=True)
+def joint_rows(q, index, sign, bound, gamma, accel, share, bounded, h, b):  # pragma: no cover - compiled
+    """Joint barrier rows: h_i = sign_i (q_{index_i} − bound_i), b_i = −α(h_i) with α(h) = γ h, or where
+    ``bounded`` and h > 0, min(γ h, √(2 ``share`` a h)) (a = ``accel`` of that joint)."""
+    for i in range(index.shape[0]):
+        hi = sign[i] * (q[index[i]] - bound[i])
+        alpha = gamma * hi
+        if bounded and hi > 0.0:
+            alpha = min(alpha, np.sqrt(2.0 * share * accel[index[i]] * hi))
+        h[i] = hi
+        b[i] = -alpha
+
+
+@njit(cache=True, nogil=True)
+def _moves(A, i, tol):  # pragma: no cover - compiled
+    """Row i's largest |A_ij| (NaN if any is NaN, 0 for an empty row) exceeds ``tol``."""
+    largest = 0.0
+    for j in range(A.shape[1]):
+        v = abs(A[i, j])
+        if v != v:
+            return False
+        largest = max(largest, v)
+    return largest > tol
+
+
+@njit(cache=True, nogil=True)
+def movable_mask(A, tol, out):  # pragma: no cover - compiled
+    """out_i = row i of A moves (:func:`_moves`)."""
+    for i in range(A.shape[0]):
+        out[i] = _moves(A, i, tol)
+
+
+@njit(cache=True, nogil=True)
+def keep_movable(A, b, soft, tol, start, A_out, b_out, soft_out, kept, k):  # pragma: no cover - compiled
+    """Append the rows of one block (A, b, soft) that move (:func:`_moves`) to the outputs from their
+    row k on, with their indices (``start`` + row in the block) in ``kept``; returns the new k."""
+    for i in range(A.shape[0]):
+        if _moves(A, i, tol):
+            for j in range(A.shape[1]):
+                A_out[k, j] = A[i, j]
+            b_out[k] = b[i]
+            soft_out[k] = soft[i]
+            kept[k] = start + i
+            k += 1
+    return k
+
+
+@njit(cache=True, nogil=True)
+def masked_min(h, enabled, group, want):  # pragma: no cover - compiled
+    """(count, min h) over the rows with ``enabled`` and ``group == want`` (a NaN among them: NaN)."""
+    count, low = 0, np.inf
+    for i in range(h.shape[0]):
+        if enabled[i] and group[i] == want:
+            count += 1
+            if h[i] != h[i]:
+                return count, h[i]
+            low = min(low, h[i])
+    return count, low

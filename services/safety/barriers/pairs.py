@@ -32,7 +32,7 @@ from typing import ClassVar
 import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
-from services.safety.barriers.kernel import pair_distances, pair_rows
+from services.safety.barriers.kernel import masked_min, pair_rows, segment_pairs
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.geometry import EPS_NORMAL, safe_normal, segment_closest_points
 
@@ -52,8 +52,8 @@ class BarrierRows(RowBlock):
 
     def min_h(self, self_rows: bool) -> float | None:
         """Minimum h over enabled self (or robot–human) rows; None if there is none."""
-        mask = self.enabled & (self.is_self if self_rows else ~self.is_self)
-        return float(self.h[mask].min()) if mask.any() else None
+        count, low = masked_min(self.h, self.enabled, self.is_self, self_rows)
+        return float(low) if count else None
 
 
 def swept_witness_points(segments: np.ndarray, radii: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -76,25 +76,25 @@ def segment_rows(
     gamma: float,
     phi: float,
     lookahead: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rows (A (m, n), b (m,), h (m,), distance (m,)) of the sphere-swept segments ``segments``
-    (S, 2, 3) with ``radii`` (S,): closest points, h and normals
-    (:func:`~services.safety.barriers.kernel.pair_distances`), then A and b
-    (:func:`~services.safety.barriers.kernel.pair_rows`). The first ``n_robot`` segments are the
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Rows (A (m, n), b (m,), h (m,), distance (m,), min h (inf: no row)) of the sphere-swept segments ``segments``
+    (S, 2, 3) with ``radii`` (S,): closest points, h and normals, then A and b, in one compiled call
+    (:func:`~services.safety.barriers.kernel.segment_pairs`). The first ``n_robot`` segments are the
     robot's, with endpoint Jacobians ``jacobians`` (n_robot, 2, 3, n); the others are external
     (zero Jacobian), with endpoint ``velocities`` (S, 2, 3). Row i pairs segment ``first[i]``
     (robot) with ``second[i]``. A zero-length segment is a sphere."""
     m = len(first)
-    distance, h, s, t = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    distance, h, s, t = np.empty((4, m))  # one allocation; each a contiguous row
     normal = np.empty((m, 3))
-    need = pair_distances(segments, radii, first, second, phi, EPS_NORMAL, distance, h, s, t, normal)
-    if need:  # segments touching or crossing: the documented deterministic fallback normal
+    A, b = np.empty((m, jacobians.shape[3])), np.empty(m)
+    need, min_h = segment_pairs(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead,
+                         EPS_NORMAL, distance, h, s, t, normal, A, b)
+    if need:  # segments touching or crossing: the documented deterministic fallback normal, then the rows
         rows = np.flatnonzero(distance < EPS_NORMAL)
         ea, eb = segments[first[rows]], segments[second[rows]]
         normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
-    A, b = np.empty((m, jacobians.shape[3])), np.empty(m)
-    pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
-    return A, b, h, distance
+        pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
+    return A, b, h, distance, float(min_h)
 
 
 class CollisionGeometry(Barrier):
@@ -182,8 +182,10 @@ class CollisionGeometry(Barrier):
         """(m, 2, 3) the closest points of every row's two colliders at the last evaluation: p_A on
         the robot's, p_B on the other (the constraint lines of the paper's Fig. 4)."""
 
-    def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray) -> BarrierRows:
-        """Package the rows, disabling those of missing external capsules."""
+    def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray,
+              min_h: float | None = None) -> BarrierRows:
+        """Package the rows, disabling those of missing external capsules; ``min_h``: the smallest h
+        of all rows when the caller has it (None: computed here)."""
         if not self._all_enabled:
             enabled = self._valid[self._row_capsule]
             A[~enabled] = 0.0
@@ -192,7 +194,7 @@ class CollisionGeometry(Barrier):
             min_h_all = float(h[enabled].min()) if enabled.any() else float("inf")
         else:
             enabled = self._row_all_enabled
-            min_h_all = float(h.min()) if len(h) else float("inf")
+            min_h_all = min_h if min_h is not None else float(h.min()) if len(h) else float("inf")
         return BarrierRows(A=A, b=b, soft=self._row_soft, h=h, distance=distance, enabled=enabled,
                            is_self=self._row_is_self, min_h_all=min_h_all)
 

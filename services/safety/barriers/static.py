@@ -54,10 +54,10 @@ class StaticCapsuleBarrier(Barrier):
             return BarrierRows(A=np.zeros((0, self._n_joints)), b=empty, soft=self._hard, h=empty, distance=empty,
                                enabled=self._enabled, is_self=self._self)
         self._segments[:N_ROBOT] = endpoints
-        A, b, h, distance = segment_rows(self._segments, self._radii, jacobians, self._velocities, self._first,
-                                         self._second, N_ROBOT, gamma, phi, 0.0)
+        A, b, h, distance, min_h = segment_rows(self._segments, self._radii, jacobians, self._velocities, self._first,
+                                                self._second, N_ROBOT, gamma, phi, 0.0)
         return BarrierRows(A=A, b=b, soft=self._hard, h=h, distance=distance, enabled=self._enabled,
-                           is_self=self._self, min_h_all=float(h.min()))
+                           is_self=self._self, min_h_all=min_h)
 
     def row_names(self) -> tuple[str, ...]:
         return self.names
