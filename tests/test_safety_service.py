@@ -165,8 +165,13 @@ def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, m
     assert all(450 <= n <= 505 for n in per_second), per_second
     if machine_wake["keeps_time"]:
         assert sum(per_second) >= 0.99 * 5 * RATE_HZ, (per_second, machine_wake)
+    # commands are put with Zenoh's default congestion control (drop, the newest command wins): on a
+    # machine that wakes threads late the sender's queue can overflow, so losses are a budget there
     seqs = np.array([m.seq for m in window])
-    assert seqs[-1] - seqs[0] + 1 - len(window) <= 0.005 * len(window), "commands lost on loopback"
+    lost = seqs[-1] - seqs[0] + 1 - len(window)
+    if machine_wake["keeps_time"]:
+        assert lost <= 0.005 * len(window), ("commands lost on loopback", lost, machine_wake)
+    assert lost <= 0.05 * len(window), ("commands lost on loopback", lost)  # never a large share
     assert not decode_failures, decode_failures
     assert all(np.isfinite(m.q).all() and np.isfinite(m.dq).all() for m in window)
     assert {m.mode for m in window} == {SafetyMode.NOMINAL}
@@ -185,9 +190,10 @@ def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, m
     m = re.search(r"(\d+) ticks in ([\d.]+) s \(([\d.]+) Hz of 500\), (\d+) deadline misses", summary)
     assert m, summary
     n_ticks, elapsed, achieved, misses = int(m[1]), float(m[2]), float(m[3]), int(m[4])
-    assert abs(elapsed - 6.5) < 0.1 and abs(achieved - RATE_HZ) < 0.01 * RATE_HZ, summary
-    if machine_wake["keeps_time"]:
-        assert misses < 0.01 * n_ticks, summary
+    assert abs(elapsed - 6.5) < 0.1, summary
+    if machine_wake["keeps_time"]:  # the achieved rate is the ticks that kept their deadline: a budget
+        assert misses < 0.01 * n_ticks and abs(achieved - RATE_HZ) < 0.01 * RATE_HZ, summary
+    assert achieved > 0.9 * RATE_HZ, summary  # never a long stall
     print(f"\n  {summary.strip()}; per second {per_second}; machine wake-up latency {machine_wake}")
 
 
