@@ -251,3 +251,16 @@ def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> 
         else:
             assert (lhs[soft] >= np.minimum(np.minimum(b[soft], 0.0), A[soft] @ brake) - 1e-6).all()
     assert gave > 0, "some intrusion must need more than the acceleration bound"
+
+
+def test_warm_up_compiles_the_kernels_only_an_infeasible_step_uses() -> None:
+    """After the pipeline's warm-up the kernel of the widened acceleration boxes (``_reach``, which
+    only an infeasible step calls) is compiled like the first box's (numba compiles on first use: a
+    control tick must not pay it the first time a person walks in), and the filter is back at q."""
+    from services.safety.qp import box
+
+    p = pipeline_for()
+    q = p.kinematics.q_home.copy()
+    p.warm_up(DT, q)
+    assert box._bounded.signatures and box._reach.signatures  # noqa: SLF001 (numba dispatchers)
+    np.testing.assert_array_equal(p.filter.q_cbf, q)

@@ -34,7 +34,8 @@ class SafetyPipeline:
     def warm_up(self, dt: float, q: np.ndarray | None = None, human: HumanState | None = None, steps: int = 3) -> None:
         """Throw-away steps from ``q`` (default: the filter's) with ``human``'s capsules, so one-time
         lazy work (numba's compiled-function cache, a QP solver's first setup: 0.2–0.3 s measured
-        here) and the solver's warm start happen now, not inside a control tick. The filter ends at ``q``."""
+        here; the kernels of the boxes only an infeasible step uses) and the solver's warm start
+        happen now, not inside a control tick. The filter ends at ``q``."""
         filt = self.filter
         q = filt.q_cbf.copy() if q is None else np.array(q, dtype=np.float64)
         if human is None:
@@ -44,6 +45,7 @@ class SafetyPipeline:
         filt.reset(q)
         for _ in range(steps):
             filt.step(q, dt)
+        filt.compile_boxes(dt)
         filt.reset(q)
 
 

@@ -301,6 +301,19 @@ class SafetyFilter:
             gave_way=gave_way, min_h_self=min_h_self(blocks), ddq=ddq,
         )
 
+    def compile_boxes(self, dt: float) -> None:
+        """Compute every velocity box the step may try (:meth:`_boxes`) once, so that numba compiles
+        the kernels of the widened boxes now: a step asks for them only when its QP is infeasible,
+        and a control tick would otherwise pay their compilation the first time a person walks in.
+        No state changes."""
+        u_prev = self._u_prev
+        self._u_prev = np.zeros_like(self.q_cbf) if u_prev is None else u_prev
+        try:
+            for _ in self._boxes(self.q_cbf, dt):
+                pass
+        finally:
+            self._u_prev = u_prev
+
     def _boxes(self, q: np.ndarray, dt: float) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
         """The velocity boxes to try in order, each (lower, upper, honours the acceleration bound),
         computed when asked for (the first suffices unless the QP is infeasible).
