@@ -53,8 +53,7 @@ class TruthProbe:
         self.pairs: PairSet = make_pair_set([tuple(p) for p in spec.self_pairs], n_people=1)
         self._barrier = CapsuleBarrier(self.pairs, radii, n)
         #: Every static pair of the robot description (the arms against the pelvis).
-        self._static = StaticCapsuleBarrier([tuple(p) for p in spec.static_pairs], radii, kinematics.static_endpoints,
-                                            {name: c.radius for name, c in spec.static_capsules.items()}, n)
+        self._static = StaticCapsuleBarrier.for_robot(kinematics, radii, [tuple(p) for p in spec.static_pairs])
         #: (M,) the name of each truth row: :attr:`pairs`, then the static pairs.
         self.names: tuple[str, ...] = self.pairs.names + self._static.row_names()
         #: (M,) bool: the row is a robot–robot (self or static) pair.

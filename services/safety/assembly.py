@@ -94,9 +94,7 @@ def make_static_barrier(conf: StackConfig, kinematics: RobotKinematics) -> Stati
     spec = kinematics.spec
     enabled = PairGroup.SELF_TORSO in conf.safety.enabled_pair_groups
     pairs = [tuple(p) for p in spec.static_pairs] if enabled else []
-    radii = {name: cap.radius for name, cap in spec.static_capsules.items()}
-    return StaticCapsuleBarrier(pairs, robot_radii(conf, kinematics), kinematics.static_endpoints, radii,
-                                len(kinematics.joint_names))
+    return StaticCapsuleBarrier.for_robot(kinematics, robot_radii(conf, kinematics), pairs)
 
 
 def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics: RobotKinematics | None = None) -> SafetyPipeline:

@@ -6,9 +6,9 @@
 
 A and b stack the rows of every barrier the filter holds (:mod:`services.safety.barriers`: the
 pair barrier of the configured geometry, the robot description's joint barriers, any other such
-as the static capsules of :mod:`~services.safety.barriers.static`), each row hard or soft. u_lo/u_hi are the velocity bounds intersected with the joint limits
-reachable in one step; u* is clipped to them whatever the solver returns, so
-|q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly.
+as the static capsules of :mod:`~services.safety.barriers.static`), each row hard or soft.
+u_lo/u_hi are the velocity bounds intersected with the joint limits reachable in one step; u* is
+clipped to them whatever the solver returns, so |q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly.
 
 **Acceleration bound.** With ``accel_max`` a (rad/s²) the box is narrowed so that every joint
 can still stop at its limit decelerating at a, and intersected with [u_prev − aΔt, u_prev + aΔt]
@@ -263,7 +263,7 @@ class SafetyFilter:
         gave_way: tuple[str, ...] = ()
         if u is not None:
             mode = SafetyMode.ACTIVE if solution.active_rows else SafetyMode.NOMINAL
-            if self.enforce and min(b.min_h_all for b in blocks if isinstance(b, BarrierRows)) < -VIOLATION_TOL:
+            if self.enforce and min(bl.min_h_all for bl in blocks if isinstance(bl, BarrierRows)) < -VIOLATION_TOL:
                 mode = SafetyMode.RELAXED
             active = solution.active_rows
         else:
@@ -320,12 +320,10 @@ class SafetyFilter:
 
         Without a bound (none configured, or the first step after a reset): the velocity box
         (:func:`~services.safety.qp.box.velocity_box`) alone. With one (a, rad/s²): the velocity box
-        narrowed so that a joint
-        can still stop at its limit decelerating at a' = β a (β = BRAKE_SHARE; d the distance left:
-        |u| ≤ √(2a'd + (a'Δt/2)²) − a'Δt/2, the speed from which steps of a'Δt brake to rest within
-        d; 0 stays inside), then
-        intersected with [u_prev − f aΔt, u_prev + f aΔt] for f in :data:`ACCEL_WIDENING`, then that
-        narrowed box alone. A bound clipped into the box is non-empty but no longer honoured where
+        narrowed so that a joint can still stop at its limit decelerating at a' = β a (β =
+        BRAKE_SHARE; d the distance left: |u| ≤ √(2a'd + (a'Δt/2)²) − a'Δt/2, the speed from which
+        steps of a'Δt brake to rest within d; 0 stays inside), then intersected with
+        [u_prev − f aΔt, u_prev + f aΔt] for f in :data:`ACCEL_WIDENING`, then that narrowed box alone. A bound clipped into the box is non-empty but no longer honoured where
         the box lies wholly beyond it (a velocity bound lowered at run time)."""
         p, u_prev = self.params, self._u_prev
         a = p.accel_max

@@ -47,6 +47,14 @@ class StaticCapsuleBarrier(Barrier):
         m = len(self.names)
         self._hard, self._self, self._enabled = np.zeros(m, bool), np.ones(m, bool), np.ones(m, bool)
 
+    @classmethod
+    def for_robot(cls, kinematics, robot_radii: np.ndarray, pairs: Sequence[tuple[str, str]]) -> StaticCapsuleBarrier:
+        """The rows of ``pairs`` (a subset of the robot description's ``static_pairs``) on the static
+        capsules ``kinematics`` (:class:`~services.safety.kinematics.RobotKinematics`) placed in the
+        world, with the robot capsules' ``robot_radii`` (7,) m."""
+        static_radii = {name: cap.radius for name, cap in kinematics.spec.static_capsules.items()}
+        return cls(pairs, robot_radii, kinematics.static_endpoints, static_radii, len(kinematics.joint_names))
+
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
                         lookahead: float, accel: np.ndarray | None = None) -> BarrierRows:
         if not len(self.names):
