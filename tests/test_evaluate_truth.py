@@ -12,7 +12,7 @@ import pytest
 
 from safemimic.evaluate.episode import run_episode
 from safemimic.evaluate.evaluation import evaluation_config, true_person_of
-from safemimic.evaluate.fidelity import best_delay, direction_errors, lag_ms
+from safemimic.evaluate.fidelity import ACQUIRE_S, best_delay, direction_errors, fidelity, judged_from, lag_ms
 from safemimic.evaluate.person import CameraModel, corrupt, interpolate_skeleton, perceive
 from safemimic.evaluate.source import EvaluationInput, open_input
 from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe
@@ -228,6 +228,29 @@ def test_lag_recovers_a_known_delay() -> None:
     assert lag_ms(np.zeros((4000, 8)), np.zeros((4000, 8)), dt) is None  # nothing moves
 
 
+def test_fidelity_is_judged_from_one_second_after_the_person_is_first_perceived() -> None:
+    """The robot's move from its home pose to the person's first pose is not imitation: an error
+    that only exists before ACQUIRE_S after the first perceived state does not count, one after does."""
+    dt, n = 0.002, 3000
+    t = np.arange(n) * dt
+    q_true = np.tile(0.5 * np.sin(2 * np.pi * 0.5 * t)[:, None], (1, 8))
+    perceived = t >= 0.06  # the first state arrives after the camera latency
+    start = judged_from(perceived, dt)
+    assert start == 30 + round(ACQUIRE_S / dt)
+    q_sim = q_true.copy()
+    q_sim[:start] += 1.0  # still on its way from home
+    free, directions = np.ones(n, bool), np.full((n, 4), 10.0)
+    directions[:start] = 170.0
+    result = fidelity(q_true, q_sim, free, directions, np.full((n, 4), 4.0), perceived, dt)
+    assert result["rms_true"] == 0.0 and result["rms_true_free"] == 0.0 and result["lag_ms"] == 0.0
+    assert result["direction_error_deg_p95"] == 10.0 and result["direction_error_deg_p95_at_target"] == 4.0
+    assert result["judged_from_s"] == pytest.approx(start * dt)
+    q_sim[start + 10] += 1.0  # one step off inside the window counts
+    assert fidelity(q_true, q_sim, free, directions, directions, perceived, dt)["rms_true"] > 0.0
+    never = fidelity(q_true, q_sim, free, directions, directions, np.zeros(n, bool), dt)
+    assert never["rms_true"] is None and never["judged_from_s"] is None and never["lag_ms"] is None
+
+
 def test_direction_error_is_zero_for_the_same_pose_and_mirrors_facing() -> None:
     """A robot whose capsules lie exactly along the person's segments has 0° error; facing, the
     robot's left arm is compared with the person's right one, reflected."""
@@ -258,7 +281,8 @@ def test_evaluation_reports_the_truth_keys(tmp_path: Path) -> None:
         m = metrics[run]
         assert m["person_caused_contact_steps"] + m["robot_caused_contact_steps"] == m["true_contacts_robot_human"]
         assert set(m["fidelity"]) == {"lag_ms", "rms_true", "rms_true_free", "direction_error_deg_p50",
-                                      "direction_error_deg_p95"}
+                                      "direction_error_deg_p95", "direction_error_deg_p50_at_target",
+                                      "direction_error_deg_p95_at_target", "judged_from_s"}
         assert m["fidelity"]["lag_ms"] is not None and m["fidelity"]["lag_ms"] > 0
     assert metrics["nominal"]["true_contacts_robot_human"] > metrics["cbf"]["true_contacts_robot_human"]
     assert metrics["input"]["latency_ms"] == 60.0 and metrics["input"]["seed"] == 3

@@ -1,11 +1,14 @@
 """Imitation fidelity: how well the simulated robot follows the true person (the paper's future work).
 
 Against ``q_true`` (the retargeted angles of the true skeleton: same estimator, calibration and
-mirror as the stack) and the simulated joints q_sim, per run:
+mirror as the stack) and the simulated joints q_sim, per run, over the *judged steps*: from
+:data:`ACQUIRE_S` after the first perceived state to the end (before, the robot is still moving from
+its home pose to the person's first pose, which says nothing of how it follows a motion):
 
 - ``lag_ms``: for each joint whose ``q_true`` moves more than :data:`MOVING_RAD` (peak to peak),
   the delay τ ∈ [−:data:`MAX_LEAD_S`, :data:`MAX_LAG_S`] minimising the mean of
-  (q_sim(t) − q_true(t − τ))² over one common window, in control steps; the median over those
+  (q_sim(t) − q_true(t − τ))² over the judged steps of q_sim (q_true may reach back before them),
+  in control steps; the median over those
   joints (null: no joint moves, or the run is shorter than the search range);
 - ``rms_true`` / ``rms_true_free``: RMS of q_sim − q_true (rad) over every step and joint / over
   the free steps (no constraint binds in the CBF run);
@@ -15,7 +18,12 @@ mirror as the stack) and the simulated joints q_sim, per run:
   up). The robot's segments are its CBF capsules' axes at q_sim (torso capsule base as pelvis,
   upper-arm capsule bases as shoulders); facing the person (mirror), the robot's left arm is
   compared with the person's right arm reflected across the sagittal plane (lateral sign
-  flipped). Percentiles over every (step, segment) sample with both directions defined.
+  flipped). Percentiles over every (step, segment) sample with both directions defined;
+- ``direction_error_deg_p50_at_target`` / ``_p95_at_target``: the same with the robot placed
+  exactly at ``q_true`` (perfect tracking), over the same samples: the share of the direction error
+  that the retargeting (paper eq. 2: q_home + S (θ − θ_home), clipped to the joint ranges) and the
+  robot's kinematics leave, which no controller can remove;
+- ``judged_from_s``: where the judged steps begin (s; null: no perceived state).
 """
 
 from __future__ import annotations
@@ -25,6 +33,10 @@ import numpy as np
 from services.perception.angles import torso_axes
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX
 
+#: The judged steps begin this long after the first perceived state (s): at the default bounds
+#: (u_max 3 / 10 rad/s, accel_max 10 / 60 rad/s², waist / arms) a joint crosses its whole range in
+#: under 1 s, so the robot has reached the person's first pose by then.
+ACQUIRE_S = 1.0
 #: A joint "moves" when its true target spans more than this (rad).
 MOVING_RAD = 0.2
 #: Delay search range (s): how far the robot may trail / lead the person.
@@ -42,23 +54,26 @@ _ARMS = {
 }
 
 
-def best_delay(reference: np.ndarray, follower: np.ndarray, dt: float) -> float | None:
-    """The delay τ (s) with follower(t) ≈ reference(t − τ), by least squares over one window; None
-    if the series is too short for the search range. Both (N,), sampled every ``dt`` seconds."""
+def best_delay(reference: np.ndarray, follower: np.ndarray, dt: float, start: int = 0) -> float | None:
+    """The delay τ (s) with follower(t) ≈ reference(t − τ), by least squares over one window of the
+    follower from step ``start`` on (the reference may reach back before it); None if that window is
+    shorter than 0.5 s after the search range. Both (N,), sampled every ``dt`` seconds."""
     lag, lead = round(MAX_LAG_S / dt), round(MAX_LEAD_S / dt)
     n = len(reference)
-    if n <= lag + lead + round(0.5 / dt):
+    first = max(lag, start)
+    if n - lead - first <= round(0.5 / dt):
         return None
-    window = slice(lag, n - lead)
-    target = follower[window]
-    errors = [np.mean((target - reference[lag - d: n - lead - d]) ** 2) for d in range(-lead, lag + 1)]
+    target = follower[first: n - lead]
+    errors = [np.mean((target - reference[first - d: n - lead - d]) ** 2) for d in range(-lead, lag + 1)]
     return (int(np.argmin(errors)) - lead) * dt
 
 
-def lag_ms(q_true: np.ndarray, q_sim: np.ndarray, dt: float) -> float | None:
-    """Median over the moving joints of :func:`best_delay` (ms); None if none moves or too short."""
-    moving = [j for j in range(q_true.shape[1]) if np.ptp(q_true[:, j]) > MOVING_RAD]
-    delays = [best_delay(q_true[:, j], q_sim[:, j], dt) for j in moving]
+def lag_ms(q_true: np.ndarray, q_sim: np.ndarray, dt: float, start: int = 0) -> float | None:
+    """Median over the joints moving from step ``start`` on of :func:`best_delay` (ms); None if none
+    moves or the series is too short."""
+    judged = q_true[start:]
+    moving = [j for j in range(q_true.shape[1]) if len(judged) and np.ptp(judged[:, j]) > MOVING_RAD]
+    delays = [best_delay(q_true[:, j], q_sim[:, j], dt, start) for j in moving]
     delays = [d for d in delays if d is not None]
     return round(1e3 * float(np.median(delays)), 3) if delays else None
 
@@ -108,24 +123,40 @@ def direction_errors(keypoints: np.ndarray, valid: np.ndarray, robot: np.ndarray
     return out
 
 
+def judged_from(perceived: np.ndarray, dt: float) -> int | None:
+    """The first judged step: :data:`ACQUIRE_S` after the first step with a perceived state in force
+    (``perceived`` (N,) bool); None if there is none."""
+    first = np.flatnonzero(perceived)
+    return int(first[0]) + round(ACQUIRE_S / dt) if first.size else None
+
+
 def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions: np.ndarray,
-             dt: float) -> dict[str, float | None]:
-    """The ``fidelity`` object of one run (module docstring); ``directions`` from
-    :func:`direction_errors`, ``free`` (N,) the free steps."""
+             directions_at_target: np.ndarray, perceived: np.ndarray, dt: float) -> dict[str, float | None]:
+    """The ``fidelity`` object of one run (module docstring): ``q_true``/``q_sim`` (N, 8) rad,
+    ``free`` (N,) the free steps, ``directions``/``directions_at_target`` (N, 4) deg from
+    :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) a perceived state is in force."""
+    start = judged_from(perceived, dt)
+    first = len(q_true) if start is None else min(start, len(q_true))
+    lag = lag_ms(q_true, q_sim, dt, first)
+    judged = slice(first, None)
+    q_true, q_sim, free = q_true[judged], q_sim[judged], free[judged]
     error = q_sim - q_true
-    free_directions = directions[free]
-    samples = free_directions[np.isfinite(free_directions)]
+    both = np.isfinite(directions[judged][free]) & np.isfinite(directions_at_target[judged][free])
+    samples, at_target = directions[judged][free][both], directions_at_target[judged][free][both]
 
     def rms(e: np.ndarray) -> float | None:
         return round(float(np.sqrt(np.mean(e**2))), 6) if e.size else None
 
-    def percentile(p: float) -> float | None:
-        return round(float(np.percentile(samples, p)), 3) if samples.size else None
+    def percentile(values: np.ndarray, p: float) -> float | None:
+        return round(float(np.percentile(values, p)), 3) if values.size else None
 
     return {
-        "lag_ms": lag_ms(q_true, q_sim, dt),
+        "lag_ms": lag,
         "rms_true": rms(error),
         "rms_true_free": rms(error[free]),
-        "direction_error_deg_p50": percentile(50),
-        "direction_error_deg_p95": percentile(95),
+        "direction_error_deg_p50": percentile(samples, 50),
+        "direction_error_deg_p95": percentile(samples, 95),
+        "direction_error_deg_p50_at_target": percentile(at_target, 50),
+        "direction_error_deg_p95_at_target": percentile(at_target, 95),
+        "judged_from_s": None if start is None else round(start * dt, 6),
     }

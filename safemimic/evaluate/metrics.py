@@ -140,7 +140,8 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         **truth_metrics(ep, phi),
         "fidelity": fidelity(person.q_true, ep.q_sim, free,
                              direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
-                             float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0),
+                             direction_errors(person.keypoints, person.valid, person.robot_at_target, mirror),
+                             ep.human >= 0, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0),
     }
     assert tuple(metrics) == RUN_KEYS
     return metrics

@@ -35,6 +35,7 @@ from services.perception.capsules import HumanCapsules
 from services.perception.pipeline import PerceptionCounters, PerceptionPipeline
 from services.perception.point_filter import FilteredSkeleton
 from services.perception.base import SkeletonFrame
+from services.safety.kinematics import RobotKinematics
 from services.safety.retarget import Retargeter
 from shared.config import StackConfig
 from shared.messages import HumanState
@@ -82,7 +83,9 @@ class HumanTrack:
 class TruePerson:
     """The true person at every control step k (N steps): ``keypoints`` (N, 15, 3) m and
     ``valid`` (N, 15); ``capsules`` (N, 7, 2, 3) m, ``capsule_valid`` (N, 7), ``radii`` (7,) m;
-    ``q_true`` (N, 8) rad, the retargeted angles of the true skeleton."""
+    ``q_true`` (N, 8) rad, the retargeted angles of the true skeleton; ``robot_at_target``
+    (N, 7, 2, 3) m, the robot's CBF capsules placed exactly at ``q_true`` (perfect tracking: what
+    the retargeting and the robot's joint ranges allow, which no controller can beat)."""
 
     t: np.ndarray
     keypoints: np.ndarray
@@ -91,6 +94,7 @@ class TruePerson:
     capsule_valid: np.ndarray
     radii: np.ndarray
     q_true: np.ndarray
+    robot_at_target: np.ndarray
 
 
 def corrupt(frame: SkeletonFrame, camera_position: np.ndarray, model: CameraModel,
@@ -145,18 +149,22 @@ def interpolate_skeleton(source: EvaluationInput, t: np.ndarray) -> tuple[np.nda
     return points, valid
 
 
-def true_person(conf: StackConfig, source: EvaluationInput, t: np.ndarray, retargeter: Retargeter) -> TruePerson:
+def true_person(conf: StackConfig, source: EvaluationInput, t: np.ndarray, retargeter: Retargeter,
+                kinematics: RobotKinematics) -> TruePerson:
     """The true person at control times ``t`` (module docstring); ``retargeter`` maps its angles
-    to ``q_true`` (a fresh one per call: it keeps the last valid target)."""
+    to ``q_true`` (a fresh one per call: it keeps the last valid target), ``kinematics`` places the
+    robot's capsules there."""
     points, valid = interpolate_skeleton(source, t)
     builder = HumanCapsules(conf.human)
     estimator = PoseEstimator(conf.perception.angles)
     n = len(t)
     capsules, capsule_valid, q_true = np.empty((n, 7, 2, 3)), np.empty((n, 7), bool), np.empty((n, 8))
+    robot_at_target = np.empty((n, 7, 2, 3))
     unchanged = np.zeros(points.shape[1], bool)
     for k in range(n):
         capsules[k], capsule_valid[k], _ = builder(FilteredSkeleton(float(t[k]), points[k], valid[k], unchanged))
         theta, theta_valid = estimator(np.nan_to_num(points[k]), valid[k], float(t[k]))
         q_true[k] = retargeter(theta, theta_valid)
+        robot_at_target[k] = kinematics.compute(q_true[k])[0]
     return TruePerson(t=t, keypoints=points, valid=valid, capsules=capsules, capsule_valid=capsule_valid,
-                      radii=builder.radii.copy(), q_true=q_true)
+                      radii=builder.radii.copy(), q_true=q_true, robot_at_target=robot_at_target)

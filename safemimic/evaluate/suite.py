@@ -35,8 +35,11 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("robot-caused (CBF)", "of the CBF run's contact steps, those in which the robot closed a touching pair > 1 mm/s"),
     ("min true clearance (mm)", "CBF run: smallest robot–person capsule surface distance at the simulated joints"),
     ("min self h (mm)", "CBF run: smallest self-pair barrier at the simulated joints (true_min_h_self)"),
-    ("lag (ms)", "CBF run: median delay of the simulated joints behind the true person's retargeted angles"),
+    ("lag (ms)", "CBF run: median delay of the simulated joints behind the true person's retargeted angles "
+     "(fidelity columns: from 1 s after the person is first perceived, when the robot has left its home pose)"),
     ("rms true free (rad)", "CBF run: RMS of q_sim − q_true while no constraint binds"),
+    ("arm direction p95 (°): robot / at target", "CBF run, free steps: 95th percentile of the angle between the "
+     "person's and the robot's arm segments, at q_sim / with the robot exactly at q_true (the retargeting's own error)"),
 )
 _REPORT_EVERY = 50  # control steps between progress messages from a worker
 
@@ -100,6 +103,8 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             _mm(cbf["true_min_h_self"]),
             _num(cbf["fidelity"]["lag_ms"], ".0f"),
             _num(cbf["fidelity"]["rms_true_free"], ".3f"),
+            f"{_num(cbf['fidelity']['direction_error_deg_p95'], '.0f')} / "
+            f"{_num(cbf['fidelity']['direction_error_deg_p95_at_target'], '.0f')}",
         ]
         lines.append(f"| {run['clip']} | {run['placement']} | " + " | ".join(cells) + " |")
     lines += ["", "Columns:", ""] + [f"- **{h}**: {what}" for h, what in COLUMNS]
