@@ -262,7 +262,7 @@ class SafetyFilter:
             A, b = self._A_qp[:k], self._b_qp[:k]
         else:
             A, b = A_all[:0], b_all[:0]
-        problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
+        problem = QPProblem(p.weights, u_ref, A, b, lower, upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
         u = solution.u

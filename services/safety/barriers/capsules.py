@@ -60,10 +60,11 @@ class CapsuleBarrier(CollisionGeometry):
                    soft: np.ndarray, h: np.ndarray) -> tuple[float, float]:
         """:meth:`evaluate`'s rows in one compiled call (:class:`SegmentRowWriter`); :attr:`last_rows`
         views them in ``A``, ``b``, ``h``."""
-        distance, low, low_self = self._writer.write(endpoints, jacobians, gamma, phi, lookahead, start, A, b, soft, h)
-        rows = slice(start, start + distance.shape[0])
-        self.last_rows = BarrierRows(A=A[rows], b=b[rows], soft=self._row_soft, h=h[rows], distance=distance,
-                                     enabled=self._row_enabled, is_self=self._row_is_self, min_h_all=low)
+        distance = np.empty(self._first.shape[0])
+        low, low_self = self._writer.write(endpoints, jacobians, gamma, phi, lookahead, start, A, b, soft, h, distance)
+        stop = start + distance.shape[0]
+        self.last_rows = BarrierRows(A[start:stop], b[start:stop], self._row_soft, h[start:stop], distance,
+                                     self._row_enabled, self._row_is_self, low)
         return low, low_self
 
     def witness_points(self) -> np.ndarray:

@@ -89,13 +89,17 @@ def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, ga
         ia, ib = first[i], second[i]
         wa0, wa1 = 1.0 - s[i], s[i]
         wb0, wb1 = 1.0 - t[i], t[i]
+        # column k sums its terms in the order c = 0, 1, 2 (A then B) as a scalar loop would; the
+        # loop over k is innermost, along the Jacobians' contiguous axis
         for k in range(n_joints):
-            acc = 0.0
-            for c in range(3):
-                acc += normal[i, c] * (wa0 * jacobians[ia, 0, c, k] + wa1 * jacobians[ia, 1, c, k])
-                if ib < n_robot:
-                    acc -= normal[i, c] * (wb0 * jacobians[ib, 0, c, k] + wb1 * jacobians[ib, 1, c, k])
-            A[i, k] = acc
+            A[i, k] = 0.0
+        for c in range(3):
+            n_c = normal[i, c]
+            for k in range(n_joints):
+                A[i, k] += n_c * (wa0 * jacobians[ia, 0, c, k] + wa1 * jacobians[ia, 1, c, k])
+            if ib < n_robot:
+                for k in range(n_joints):
+                    A[i, k] -= n_c * (wb0 * jacobians[ib, 0, c, k] + wb1 * jacobians[ib, 1, c, k])
         v_known = 0.0
         if ib >= n_robot:
             for c in range(3):

@@ -127,13 +127,12 @@ class SegmentRowWriter:
                             0.0, 0, np.zeros((0, 0)), np.zeros(0), np.zeros(0, bool), np.zeros(0))
 
     def write(self, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float, lookahead: float,
-              start: int, A: np.ndarray, b: np.ndarray, soft: np.ndarray,
-              h: np.ndarray) -> tuple[np.ndarray, float, float]:
+              start: int, A: np.ndarray, b: np.ndarray, soft: np.ndarray, h: np.ndarray,
+              distance: np.ndarray) -> tuple[float, float]:
         """Rows at the robot's ``endpoints`` (R, 2, 3) and ``jacobians`` (R, 2, 3, n) into rows ``start`` …
-        of ``A``, ``b``, ``soft``, ``h``; returns (the rows' distances (m,), a fresh array;
-        :meth:`RowBlock.minima`)."""
+        of ``A``, ``b``, ``soft``, ``h`` and their distances into ``distance`` (m,); returns
+        :meth:`RowBlock.minima`."""
         pairs, flags, st, normal = self.pairs, self.flags, self._st, self._normal
-        distance = np.empty(pairs.shape[1])
         need, low, low_self = write_segment_block(endpoints, self.segments, self.radii, jacobians, self.velocities,
                                                   pairs, flags, gamma, phi, lookahead, distance, st, normal, start,
                                                   A, b, soft, h)
@@ -141,7 +140,7 @@ class SegmentRowWriter:
             fallback_normals(self.segments, pairs[0], pairs[1], distance, normal)
             low, low_self = finish_segment_rows(normal, st, jacobians, self.velocities, pairs, flags, endpoints.shape[0],
                                                 gamma, lookahead, start, A, b, soft, h)
-        return distance, low, low_self
+        return low, low_self
 
 
 

@@ -48,6 +48,7 @@ class StaticCapsuleBarrier(Barrier):
         self._hard, self._self, self._enabled = np.zeros(m, bool), np.ones(m, bool), np.ones(m, bool)
         self._writer = SegmentRowWriter(self._segments, self._radii, self._velocities, self._first, self._second,
                                         np.stack([self._enabled, self._self, self._hard]))
+        self._distance = np.empty(m)  # write_rows' distances (not returned)
 
     @classmethod
     def for_robot(cls, kinematics, robot_radii: np.ndarray, pairs: Sequence[tuple[str, str]]) -> StaticCapsuleBarrier:
@@ -73,8 +74,7 @@ class StaticCapsuleBarrier(Barrier):
                    lookahead: float, accel: np.ndarray | None, start: int, A: np.ndarray, b: np.ndarray,
                    soft: np.ndarray, h: np.ndarray) -> tuple[float, float]:
         """:meth:`constraint_rows` in one compiled call (:class:`SegmentRowWriter`)."""
-        _, low, low_self = self._writer.write(endpoints, jacobians, gamma, phi, 0.0, start, A, b, soft, h)
-        return low, low_self
+        return self._writer.write(endpoints, jacobians, gamma, phi, 0.0, start, A, b, soft, h, self._distance)
 
     def row_names(self) -> tuple[str, ...]:
         return self.names

@@ -96,16 +96,17 @@ class DaqpBackend(QPBackend):
         self._w_src: np.ndarray | None = None  # the weights array H was last checked against
         self._H = np.empty((0, 0))
         self._neg_w = np.empty(0)
+        self._shape = (0, 0)  # (n, m) of the vectors below
         self._f = np.empty(0)
         self._upper = np.empty(0)
         self._lower = np.empty(0)
         self._sense = np.zeros(0, dtype=np.intc)
         self._cold = np.zeros(0, dtype=np.intc)
 
-    def _buffers(self, problem: QPProblem) -> None:
+    def _buffers(self, problem: QPProblem, shape: tuple[int, int]) -> None:
         """(Re)build H only when the weights change (the same array object as last time counts as
-        unchanged: FilterParams are replaced, never mutated) and the bound vectors when the sizes do."""
-        n, m = problem.n, problem.m
+        unchanged: FilterParams are replaced, never mutated) and the vectors when the ``shape`` (n, m)
+        does."""
         w = problem.w
         if w is not self._w_src:
             if self._w is None or not np.array_equal(self._w, w):
@@ -113,18 +114,21 @@ class DaqpBackend(QPBackend):
                 self._H = np.diag(self._w)
                 self._neg_w = -self._w
             self._w_src = w
-        if self._f.shape[0] != n:
+        if shape != self._shape:
+            n, m = shape
             self._f = np.empty(n)
-        if self._upper.shape[0] != n + m:
             self._upper = np.full(n + m, _INF)
             self._lower = np.empty(n + m)
             self._sense = np.zeros(n + m, dtype=np.intc)
             self._cold = np.zeros(n + m, dtype=np.intc)
             self._warm = False
+            self._shape = shape
 
     def solve(self, problem: QPProblem) -> QPSolution:
         start = time.perf_counter()
-        self._buffers(problem)
+        shape = (problem.u_ref.shape[0], problem.b.shape[0])
+        if problem.w is not self._w_src or shape != self._shape:
+            self._buffers(problem, shape)
         H, f, upper, lower = self._H, self._f, self._upper, self._lower
         _pack(self._neg_w, problem.u_ref, problem.lower, problem.upper, problem.b, f, upper, lower)
         warm = self._warm and self.warm_start
