@@ -14,7 +14,9 @@ each with a priority (:class:`RowBlock.soft`):
   keeps its distance to that person capsule, it never closes in.
 
 :class:`~services.safety.filter.SafetyFilter` stacks the blocks of any list of barriers and
-solves one QP over all of them; it knows no barrier kind.
+solves one QP over all of them; it knows no barrier kind. Its step asks every barrier to write its
+rows in place (:meth:`Barrier.write_rows`): by default the stacked :meth:`Barrier.constraint_rows`,
+overridden with one compiled call by the barriers that have a kernel (capsule, static and joint rows).
 """
 
 from __future__ import annotations
