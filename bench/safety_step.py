@@ -581,15 +581,21 @@ def daqp_iterations(kinematics, pairs: PairSet, conf, q_nom: np.ndarray) -> dict
             return r
 
         backend.solve = counted
-        flags = daqp_backend._warm_sense  # what DaqpBackend.solve calls after each optimal solve
+        settle = daqp_backend._settle  # what DaqpBackend.solve calls after each optimal solve (it sets the flags)
+
+        def old_settle(lam, *args):
+            active = settle(lam, *args)
+            np.copyto(args[1], (lam != 0.0).astype(np.intc))  # args[1]: the sense flags
+            return active
+
         if old_flags:
-            daqp_backend._warm_sense = lambda lam, tol, sense: np.copyto(sense, (lam != 0.0).astype(np.intc))
+            daqp_backend._settle = old_settle
         try:
             f.reset(kinematics.q_home)
             for q in q_nom:
                 f.step(q, DT)
         finally:
-            daqp_backend._warm_sense = flags
+            daqp_backend._settle = settle
         return np.array(its[WARMUP:])
 
     out: dict[str, Any] = {}

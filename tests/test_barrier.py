@@ -203,3 +203,38 @@ def test_static_rows_follow_the_torso_pair_group() -> None:
     assert static.row_names() == ()
     block = static.constraint_rows(off.kinematics.q_home, *off.kinematics.compute(off.kinematics.q_home), 5.0, 0.02, 0.0)
     assert block.A.shape == (0, 8) and block.min_h(True) is None
+
+
+@pytest.mark.parametrize("scene", ["random", "touching", "missing", "none"])
+def test_rows_written_in_place_equal_the_barriers_rows(pipeline, scene: str) -> None:
+    """Every barrier's compiled in-place rows (``write_rows``, the step's fast path) equal its
+    ``constraint_rows`` bit for bit, with their minima; also for touching segments (the fallback
+    normals) and missing person capsules (disabled rows)."""
+    rng = np.random.default_rng(4)
+    kin, filt = pipeline.kinematics, pipeline.filter
+    endpoints, radii = random_humans(rng)
+    valid = np.ones(14, bool)
+    if scene == "touching":
+        robot_endpoints, _ = kin.compute(kin.q_home)
+        endpoints[:7] = robot_endpoints
+    if scene == "missing":
+        valid[[2, 9]] = False
+    pipeline.barrier.set_external(None if scene == "none" else endpoints, radii, valid, rng.normal(size=endpoints.shape))
+    p = filt.params
+    for q in (kin.q_home, random_q(kin, rng)):
+        blocks = filt.blocks_at(q)
+        ends, jac = kin.compute(q)
+        m = sum(len(block.b) for block in blocks)
+        A, b, soft, h = np.full((m, kin.nq), 7.0), np.full(m, 7.0), np.zeros(m, bool), np.full(m, 7.0)
+        start = 0
+        for barrier, block in zip(filt.barriers, blocks):
+            minima = barrier.write_rows(q, ends, jac, p.gamma, p.phi, p.human_lookahead_s, p.accel_max, start, A, b,
+                                        soft, h)
+            rows = slice(start, start + len(block.b))
+            for ours, theirs in ((A[rows], block.A), (b[rows], block.b), (soft[rows], block.soft), (h[rows], block.h)):
+                np.testing.assert_array_equal(ours, theirs)
+            np.testing.assert_array_equal(minima, block.minima())
+            start = rows.stop
+        if scene == "touching":
+            assert (pipeline.barrier.last_rows.distance < 1e-9).any()
+    pipeline.barrier.set_external(None)

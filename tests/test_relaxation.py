@@ -264,3 +264,18 @@ def test_warm_up_compiles_the_kernels_only_an_infeasible_step_uses() -> None:
     p.warm_up(DT, q)
     assert box._bounded.signatures and box._reach.signatures  # noqa: SLF001 (numba dispatchers)
     np.testing.assert_array_equal(p.filter.q_cbf, q)
+
+
+def test_warm_up_compiles_the_step_kernels() -> None:
+    """After the pipeline's warm-up every kernel of the step is compiled (numba compiles on first use:
+    no control tick may pay it): the barriers' in-place row writers, the kernel of touching segments
+    (only such a rare step calls it), the movable-row pass, u_ref with the first box, the
+    integration and the DAQP backend's flags and slack."""
+    from services.safety.barriers import kernel
+    from services.safety.qp import box, daqp_backend
+
+    p = pipeline_for()
+    p.warm_up(DT)
+    for dispatcher in (kernel.write_segment_block, kernel.write_joint_block, kernel.finish_segment_rows,
+                       kernel.keep_movable, box._reference_box, box._advance, daqp_backend._settle):  # noqa: SLF001
+        assert dispatcher.signatures, dispatcher.__name__

@@ -60,9 +60,9 @@ evaluator's no-CBF run).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from itertools import chain
 
 import numpy as np
 
@@ -71,7 +71,7 @@ from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
 from services.safety.barriers.kernel import keep_movable, movable_mask
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
-from services.safety.qp.box import bounded_box, clip_and_step, reach_box, velocity_box
+from services.safety.qp.box import advance, bounded_box, reach_box, reference_and_box, velocity_box
 from shared.messages import SafetyMode
 
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
@@ -98,25 +98,6 @@ def movable_rows(A: np.ndarray) -> np.ndarray:
     out = np.empty(A.shape[0], bool)
     movable_mask(A, _STATIC_ROW, out)
     return out
-
-
-def stack_movable(blocks: Sequence[RowBlock], m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(A, b, soft, kept): the rows of every block (``m`` in all) stacked in order, only those
-    :func:`movable_rows` keeps; ``kept`` their indices among all the stacked rows. Fresh arrays (a QP
-    may hold them)."""
-    A, b, soft, kept = np.empty((m, blocks[0].A.shape[1])), np.empty(m), np.empty(m, bool), np.empty(m, np.intp)
-    k = start = 0
-    for block in blocks:
-        k = keep_movable(block.A, block.b, block.soft, _STATIC_ROW, start, A, b, soft, kept, k)
-        start += block.b.shape[0]
-    return A[:k], b[:k], soft[:k], kept[:k]
-
-
-def min_h_self(blocks: Sequence[RowBlock]) -> float | None:
-    """The smallest h (m) over the enabled self-collision rows of the distance barriers among
-    ``blocks`` (pair and static capsule rows; joint barriers are angles and left out); None: none."""
-    values = [h for block in blocks if isinstance(block, BarrierRows) and (h := block.min_h(True)) is not None]
-    return min(values, default=None)
 
 
 def binding_rows(rows: BarrierRows, u: np.ndarray) -> np.ndarray:
@@ -198,6 +179,18 @@ class SafetyFilter:
         ]
         #: The name of every stacked row, in stacking order (fixed for a pair set).
         self.row_names: tuple[str, ...] = tuple(name for b in self.barriers for name in b.row_names())
+        self._starts: list[tuple[Barrier, int]] = []  # every barrier and its first stacked row
+        start = 0
+        for b in self.barriers:
+            self._starts.append((b, start))
+            start += len(b.row_names())
+        n, self._m_all = len(kinematics.joint_names), start
+        # buffers of one step (every result gets fresh arrays): the stacked priorities, the QP's rows
+        # (the movable ones) with their priorities and stacked indices, the boxes
+        self._soft_all = np.empty(start, bool)
+        self._A_qp, self._b_qp = np.empty((start, n)), np.empty(start)
+        self._soft_qp, self._kept = np.empty(start, bool), np.empty(start, np.intp)
+        self._lower, self._upper, self._low, self._high = np.empty((4, n))
         self.params = params
         self.backend_name = backend
         self._qp: QPBackend = make_backend(backend)
@@ -235,71 +228,94 @@ class SafetyFilter:
 
     def step(self, q_nom: np.ndarray, dt: float, dq_nom: np.ndarray | None = None) -> StepResult:
         """One control step towards ``q_nom`` (n,) over ``dt`` seconds; ``dq_nom`` (n,) rad/s, the
-        target's velocity, is fed forward (u_ref = dq_nom + K (q_nom − q_cbf); None: K only)."""
+        target's velocity, is fed forward (u_ref = dq_nom + K (q_nom − q_cbf); None: K only).
+
+        Every barrier writes its rows into the stacked A, b, soft, h (:meth:`Barrier.write_rows`), the
+        rows a velocity can move are copied into the QP's buffers in one compiled pass, u_ref and the
+        first velocity box come from one compiled call and the clip, integration and ddq from another:
+        the feasible step allocates only what it returns."""
         p = self.params
         q = self.q_cbf
-        blocks = self.blocks_at(q)
-        rows: BarrierRows = blocks[0]  # type: ignore[assignment]
-        u_ref = p.gain * (np.asarray(q_nom, dtype=np.float64) - q)
-        if dq_nom is not None:
-            u_ref = u_ref + np.asarray(dq_nom, dtype=np.float64)
+        endpoints, jacobians = self.kinematics.compute(q)
+        m_all, n = self._m_all, q.shape[0]
+        A_all, b_all, h_all, soft_all = np.empty((m_all, n)), np.empty(m_all), np.empty(m_all), self._soft_all
+        gamma, phi, lookahead, accel = p.gamma, p.phi, p.human_lookahead_s, p.accel_max
+        inside = low_self = math.inf  # the smallest h over the distance rows, over the self-collision ones
+        for barrier, start in self._starts:
+            low, low_own = barrier.write_rows(q, endpoints, jacobians, gamma, phi, lookahead, accel, start, A_all, b_all,
+                                              soft_all, h_all)
+            inside, low_self = min(inside, low), min(low_self, low_own)
+        rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
+        lower, upper = self._lower, self._upper
+        u_ref, bounded, honours = reference_and_box(
+            np.asarray(q_nom, dtype=np.float64), None if dq_nom is None else np.asarray(dq_nom, dtype=np.float64),
+            p.gain, q, self.q_min, self.q_max, p.u_min, p.u_max, accel, BRAKE_SHARE, self._u_prev, dt, lower, upper,
+            self._low, self._high)
+        if bounded:
+            lower, upper = self._low, self._high
         if self.enforce:
             # Rows no velocity can change (a pair of a static link such as a locked thigh, a missing
             # capsule's disabled row) hold or fail whatever u is: they are left out of the QP, where a
             # failing one would only make it infeasible (a person touching a static link is an
             # intrusion, reported below, not a row the robot could honour).
-            A, b, soft, kept = stack_movable(blocks, len(self.row_names))
+            k = keep_movable(A_all, b_all, soft_all, _STATIC_ROW, 0, self._A_qp, self._b_qp, self._soft_qp, self._kept, 0)
+            A, b = self._A_qp[:k], self._b_qp[:k]
         else:
-            A, b, soft = rows.A[:0], rows.b[:0], rows.soft[:0]
-            kept = np.arange(0)
-        boxes = self._boxes(q, dt)
-        first = next(boxes)
-        lower, upper, honours = first
-        problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
+            A, b = A_all[:0], b_all[:0]
+        problem = QPProblem(p.weights, u_ref, A, b, lower, upper)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
         u = solution.u
-        relaxed = np.zeros(len(rows.b), bool)
+        relaxed = np.zeros(rows.b.shape[0], bool)
         gave_way: tuple[str, ...] = ()
         if u is not None:
-            mode = SafetyMode.ACTIVE if solution.active_rows else SafetyMode.NOMINAL
-            if self.enforce and min(bl.min_h_all for bl in blocks if isinstance(bl, BarrierRows)) < -VIOLATION_TOL:
-                mode = SafetyMode.RELAXED
             active = solution.active_rows
-        else:
-            for lower, upper, honours in chain((first,), boxes):  # the acceleration bound, widened, then none
-                problem = QPProblem(w=p.weights, u_ref=u_ref, A=A, b=b, lower=lower, upper=upper)
-                u, slack, seconds = self._relax(problem, soft)
-                qp_time += seconds
-                if u is not None:
-                    break
-            if u is not None:
+            mode = SafetyMode.ACTIVE if active else SafetyMode.NOMINAL
+            if self.enforce and inside < -VIOLATION_TOL:
                 mode = SafetyMode.RELAXED
-                active = int(np.count_nonzero(A @ u - b <= 1e-6))
-                gave = np.zeros(len(self.row_names), bool)
-                gave[kept] = slack > RELAXED_TOL
-                relaxed = gave[: len(rows.b)]
-                gave_way = tuple(dict.fromkeys(self.row_names[i] for i in np.flatnonzero(gave)))
-            else:
-                u, mode, active = np.zeros(problem.n), SafetyMode.HOLD, 0
+        else:
+            u, mode, active, relaxed, gave_way, seconds, lower, upper, honours = self._relaxed_step(
+                problem, q, dt, self._soft_qp[: b.shape[0]], self._kept[: b.shape[0]], rows.b.shape[0])
+            qp_time += seconds
         if not honours:
             gave_way += (ACCEL_BOUND,)
         # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within the limits
-        u, q_next = clip_and_step(u, lower, upper, q, dt, self.q_min, self.q_max)
-        if q_next is None:  # not finite
-            u, q_next, mode = np.zeros(problem.n), q.copy(), SafetyMode.HOLD
+        advanced = advance(u, lower, upper, q, dt, self.q_min, self.q_max, self._u_prev)
+        if advanced is None:  # not finite
+            u, q_next, mode = np.zeros(n), q.copy(), SafetyMode.HOLD
+            q_result = q_next.copy()
+            ddq = np.zeros(n) if self._u_prev is None else (u - self._u_prev) / dt
+        else:
+            u, q_next, q_result, ddq = advanced
         self.q_cbf = q_next
-        ddq = np.zeros(problem.n) if self._u_prev is None else (u - self._u_prev) / dt
         self._u_prev = u
         intrusion = False
         if self.enforce and rows.min_h_all < 0.0:  # min over enabled rows: no row inside its margin, no intrusion
             person = rows.soft & rows.enabled & (rows.h < 0.0)  # a disabled row's h is NaN: never < 0
             intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
-        return StepResult(
-            q_cbf=self.q_cbf.copy(), u=u, u_ref=u_ref, mode=mode, rows=rows, active_rows=active,
-            qp_time_s=qp_time, qp_status=solution.status, relaxed=relaxed, intrusion=intrusion,
-            gave_way=gave_way, min_h_self=min_h_self(blocks), ddq=ddq,
-        )
+        return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
+                          gave_way, None if low_self == math.inf else low_self, ddq)
+
+    def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
+                      n_pair: int) -> tuple:
+        """The step when the plain QP has no solution: the relaxed solve (:meth:`_relax`) in every box
+        of :meth:`_boxes` in turn until one works. Returns (u, mode, active rows, the pair rows that
+        gave way (``n_pair``,), the names of every row that gave way, QP seconds, the box used (lower,
+        upper), whether it honours the acceleration bound); u None and mode HOLD when no box works.
+        ``soft`` and ``kept`` (their indices among all the stacked rows) of ``problem``'s rows."""
+        A, b = problem.A, problem.b
+        seconds = 0.0
+        for lower, upper, honours in self._boxes(q, dt):  # the acceleration bound, widened, then none
+            problem = QPProblem(w=problem.w, u_ref=problem.u_ref, A=A, b=b, lower=lower, upper=upper)
+            u, slack, spent = self._relax(problem, soft)
+            seconds += spent
+            if u is not None:
+                gave = np.zeros(len(self.row_names), bool)
+                gave[kept] = slack > RELAXED_TOL
+                names = tuple(dict.fromkeys(self.row_names[i] for i in np.flatnonzero(gave)))
+                active = int(np.count_nonzero(A @ u - b <= 1e-6))
+                return u, SafetyMode.RELAXED, active, gave[:n_pair], names, seconds, lower, upper, honours
+        return np.zeros(problem.n), SafetyMode.HOLD, 0, np.zeros(n_pair, bool), (), seconds, lower, upper, honours
 
     def compile_boxes(self, dt: float) -> None:
         """Compute every velocity box the step may try (:meth:`_boxes`) once, so that numba compiles

@@ -14,7 +14,9 @@ each with a priority (:class:`RowBlock.soft`):
   keeps its distance to that person capsule, it never closes in.
 
 :class:`~services.safety.filter.SafetyFilter` stacks the blocks of any list of barriers and
-solves one QP over all of them; it knows no barrier kind.
+solves one QP over all of them; it knows no barrier kind. Its step asks every barrier to write its
+rows in place (:meth:`Barrier.write_rows`): by default the stacked :meth:`Barrier.constraint_rows`,
+overridden with one compiled call by the barriers that have a kernel (capsule, static and joint rows).
 """
 
 from __future__ import annotations
@@ -26,6 +28,10 @@ from typing import ClassVar
 import numpy as np
 
 
+#: :meth:`RowBlock.minima` of rows that are no distances (joint angles): no such row
+NO_DISTANCE = (float("inf"), float("inf"))
+
+
 @dataclass
 class RowBlock:
     """One barrier's rows for one step: ``A`` (m, n), ``b`` (m,), ``soft`` (m,) bool (True: may give
@@ -35,6 +41,11 @@ class RowBlock:
     b: np.ndarray
     soft: np.ndarray
     h: np.ndarray
+
+    def minima(self) -> tuple[float, float]:
+        """(smallest h over the enabled distance rows, over the enabled self-collision distance rows);
+        inf: no such row. Rows that are not distances (here: none) count for neither."""
+        return NO_DISTANCE
 
 
 class Barrier(ABC):
@@ -51,6 +62,19 @@ class Barrier(ABC):
         ``phi`` (m) the distance margin, ``lookahead`` (s) the human velocity term's T, ``accel``
         (n,) rad/s² the joints' acceleration bound (None: none; a joint-space barrier then lets a
         joint approach no faster than it can stop)."""
+
+    def write_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
+                   lookahead: float, accel: np.ndarray | None, start: int, A: np.ndarray, b: np.ndarray,
+                   soft: np.ndarray, h: np.ndarray) -> tuple[float, float]:
+        """The rows of :meth:`constraint_rows` (same arguments, same values) written in place, into
+        rows ``start`` … ``start + m − 1`` of the stacked ``A`` (M, n), ``b``, ``soft``, ``h`` (M,) of
+        every barrier; returns :meth:`RowBlock.minima` of them. This default stacks
+        :meth:`constraint_rows`; a barrier with a compiled kernel overrides it (the filter's step then
+        allocates nothing for its rows)."""
+        block = self.constraint_rows(q, endpoints, jacobians, gamma, phi, lookahead, accel)
+        stop = start + block.b.shape[0]
+        A[start:stop], b[start:stop], soft[start:stop], h[start:stop] = block.A, block.b, block.soft, block.h
+        return block.minima()
 
     @abstractmethod
     def row_names(self) -> tuple[str, ...]:

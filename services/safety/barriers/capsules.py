@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.safety.barriers.pairs import DISABLED_B, BarrierRows, CollisionGeometry, segment_rows, swept_witness_points
+from services.safety.barriers.pairs import (
+    DISABLED_B, BarrierRows, CollisionGeometry, SegmentRowWriter, segment_rows, swept_witness_points,
+)
 from services.safety.pairs import N_ROBOT, PairSet
 
 __all__ = ["DISABLED_B", "BarrierRows", "CapsuleBarrier"]
@@ -39,6 +41,8 @@ class CapsuleBarrier(CollisionGeometry):
         super().__init__(pairs, robot_radii, n_joints)
         self._first = np.ascontiguousarray(pairs.first, dtype=np.int64)
         self._second = np.ascontiguousarray(pairs.second, dtype=np.int64)
+        self._writer = SegmentRowWriter(self._endpoints, self._radii, self._velocities, self._first, self._second,
+                                        self._flags)
 
     def evaluate(
         self, robot_endpoints: np.ndarray, robot_jacobians: np.ndarray, gamma: float, phi: float, lookahead: float = 0.0
@@ -50,6 +54,18 @@ class CapsuleBarrier(CollisionGeometry):
             self._endpoints, self._radii, robot_jacobians, self._velocities, self._first, self._second, N_ROBOT,
             gamma, phi, lookahead,
         ))
+
+    def write_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
+                   lookahead: float, accel: np.ndarray | None, start: int, A: np.ndarray, b: np.ndarray,
+                   soft: np.ndarray, h: np.ndarray) -> tuple[float, float]:
+        """:meth:`evaluate`'s rows in one compiled call (:class:`SegmentRowWriter`); :attr:`last_rows`
+        views them in ``A``, ``b``, ``h``."""
+        distance = np.empty(self._first.shape[0])
+        low, low_self = self._writer.write(endpoints, jacobians, gamma, phi, lookahead, start, A, b, soft, h, distance)
+        stop = start + distance.shape[0]
+        self.last_rows = BarrierRows(A[start:stop], b[start:stop], self._row_soft, h[start:stop], distance,
+                                     self._row_enabled, self._row_is_self, low)
+        return low, low_self
 
     def witness_points(self) -> np.ndarray:
         return swept_witness_points(self._endpoints, self._radii, self._first, self._second)

@@ -16,8 +16,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from services.safety.barriers.base import Barrier, RowBlock
-from services.safety.barriers.kernel import joint_rows
+from services.safety.barriers.base import NO_DISTANCE, Barrier, RowBlock
+from services.safety.barriers.kernel import joint_rows, write_joint_block
 
 #: The share of a joint's acceleration bound it counts on to stop at a barrier or a joint limit (the
 #: rest is left to the other rows and joints competing for the same step).
@@ -51,6 +51,15 @@ class JointBarrier(Barrier):
         joint_rows(q, self.index, self.sign, self.bound, gamma, accel if bounded else self._unbounded, BRAKE_SHARE,
                    bounded, h, b)
         return RowBlock(A=self._A, b=b, soft=self._soft, h=h)
+
+    def write_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
+                   lookahead: float, accel: np.ndarray | None, start: int, A: np.ndarray, b: np.ndarray,
+                   soft: np.ndarray, h: np.ndarray) -> tuple[float, float]:
+        """:meth:`constraint_rows` in one compiled call; joint angles are no distances: (inf, inf)."""
+        bounded = accel is not None
+        write_joint_block(q, self.index, self.sign, self.bound, gamma, accel if bounded else self._unbounded, BRAKE_SHARE,
+                          bounded, self._A, start, A, b, soft, h)
+        return NO_DISTANCE
 
     def row_names(self) -> tuple[str, ...]:
         return self._names

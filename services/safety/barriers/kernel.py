@@ -21,7 +21,11 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("XDG_CACHE_HOME
 import numpy as np  # noqa: E402
 from numba import njit  # noqa: E402
 
+from shared.geometry import EPS_NORMAL  # noqa: E402
+
 _TINY = 1e-300
+#: b of a disabled row (A = 0): 0 ≥ −1e9 always holds.
+DISABLED_B = -1e9
 
 
 @njit(cache=True, nogil=True)
@@ -85,13 +89,17 @@ def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, ga
         ia, ib = first[i], second[i]
         wa0, wa1 = 1.0 - s[i], s[i]
         wb0, wb1 = 1.0 - t[i], t[i]
+        # column k sums its terms in the order c = 0, 1, 2 (A then B) as a scalar loop would; the
+        # loop over k is innermost, along the Jacobians' contiguous axis
         for k in range(n_joints):
-            acc = 0.0
-            for c in range(3):
-                acc += normal[i, c] * (wa0 * jacobians[ia, 0, c, k] + wa1 * jacobians[ia, 1, c, k])
-                if ib < n_robot:
-                    acc -= normal[i, c] * (wb0 * jacobians[ib, 0, c, k] + wb1 * jacobians[ib, 1, c, k])
-            A[i, k] = acc
+            A[i, k] = 0.0
+        for c in range(3):
+            n_c = normal[i, c]
+            for k in range(n_joints):
+                A[i, k] += n_c * (wa0 * jacobians[ia, 0, c, k] + wa1 * jacobians[ia, 1, c, k])
+            if ib < n_robot:
+                for k in range(n_joints):
+                    A[i, k] -= n_c * (wb0 * jacobians[ib, 0, c, k] + wb1 * jacobians[ib, 1, c, k])
         v_known = 0.0
         if ib >= n_robot:
             for c in range(3):
@@ -175,3 +183,87 @@ def masked_min(h, enabled, group, want):  # pragma: no cover - compiled
                 return count, h[i]
             low = min(low, h[i])
     return count, low
+
+
+@njit(cache=True, nogil=True)
+def _nan_min(low, value):  # pragma: no cover - compiled
+    """min(low, value), NaN once either is NaN (numpy's minimum)."""
+    return value if value != value or value < low else low
+
+
+@njit(cache=True, nogil=True)
+def block_minima(h, enabled, is_self):  # pragma: no cover - compiled
+    """(min h over the ``enabled`` rows, min h over the enabled rows with ``is_self``); inf: no such
+    row, NaN: a NaN among them (as ``masked_min``)."""
+    low, low_self = np.inf, np.inf
+    for i in range(h.shape[0]):
+        if enabled[i]:
+            low = _nan_min(low, h[i])
+            if is_self[i]:
+                low_self = _nan_min(low_self, h[i])
+    return low, low_self
+
+
+@njit(cache=True, nogil=True)
+def finish_segment_block(flags, A, b, h, soft):  # pragma: no cover - compiled
+    """The rows of a missing capsule (``flags[0]`` False: not enabled) become A = 0, b = DISABLED_B,
+    h = NaN; ``soft`` ← ``flags[2]``; returns :func:`block_minima` (``flags[1]``: the self rows)."""
+    for i in range(h.shape[0]):
+        soft[i] = flags[2, i]
+        if not flags[0, i]:
+            for j in range(A.shape[1]):
+                A[i, j] = 0.0
+            b[i] = DISABLED_B
+            h[i] = np.nan
+    return block_minima(h, flags[0], flags[1])
+
+
+@njit(cache=True, nogil=True)
+def write_segment_block(robot_endpoints, segments, radii, jacobians, velocities, pairs, flags, gamma, phi, lookahead,
+                        distance, st, normal, start, A, b, soft, h):  # pragma: no cover - compiled
+    """The rows of sphere-swept segment pairs (:func:`segment_pairs`) written in place.
+
+    The robot's ``robot_endpoints`` (R, 2, 3) are copied into ``segments[:R]``; row i pairs segment
+    ``pairs[0, i]`` with ``pairs[1, i]``; rows ``start`` … ``start + m − 1`` of ``A``, ``b``, ``h`` get
+    A, b, h, then :func:`finish_segment_block` with ``flags`` (3, m) = (enabled, self row, soft).
+    ``distance`` (m,), ``st`` (2, m) (s and t) and ``normal`` (m, 3) are written too. Returns (rows that
+    need a fallback normal, min h of the enabled rows, of the enabled self rows); with a fallback
+    needed (then NaN, NaN) A and b are not written: the caller supplies the normals, then
+    :func:`finish_segment_rows`."""
+    n_robot = robot_endpoints.shape[0]
+    for c in range(n_robot):
+        for e in range(2):
+            for k in range(3):
+                segments[c, e, k] = robot_endpoints[c, e, k]
+    stop = start + pairs.shape[1]
+    hb = h[start:stop]
+    need = pair_distances(segments, radii, pairs[0], pairs[1], phi, EPS_NORMAL, distance, hb, st[0], st[1], normal)
+    if need:
+        return need, np.nan, np.nan
+    Ab, bb = A[start:stop], b[start:stop]
+    pair_rows(normal, st[0], st[1], hb, jacobians, velocities, pairs[0], pairs[1], n_robot, gamma, lookahead, Ab, bb)
+    low, low_self = finish_segment_block(flags, Ab, bb, hb, soft[start:stop])
+    return 0, low, low_self
+
+
+@njit(cache=True, nogil=True)
+def finish_segment_rows(normal, st, jacobians, velocities, pairs, flags, n_robot, gamma, lookahead, start, A, b, soft,
+                        h):  # pragma: no cover - compiled
+    """The rest of :func:`write_segment_block` once the caller has supplied the fallback normals:
+    :func:`pair_rows` and :func:`finish_segment_block` on rows ``start`` …; returns the minima."""
+    stop = start + pairs.shape[1]
+    Ab, bb, hb = A[start:stop], b[start:stop], h[start:stop]
+    pair_rows(normal, st[0], st[1], hb, jacobians, velocities, pairs[0], pairs[1], n_robot, gamma, lookahead, Ab, bb)
+    return finish_segment_block(flags, Ab, bb, hb, soft[start:stop])
+
+
+@njit(cache=True, nogil=True)
+def write_joint_block(q, index, sign, bound, gamma, accel, share, bounded, rows, start, A, b, soft, h):  # pragma: no cover - compiled
+    """:func:`joint_rows` written in place: rows ``start`` … of ``A`` ← the constant ``rows``, of ``b``
+    and ``h`` the joint rows' b and h, of ``soft`` False (hard)."""
+    stop = start + index.shape[0]
+    joint_rows(q, index, sign, bound, gamma, accel, share, bounded, h[start:stop], b[start:stop])
+    for i in range(index.shape[0]):
+        soft[start + i] = False
+        for j in range(rows.shape[1]):
+            A[start + i, j] = rows[i, j]

@@ -32,12 +32,11 @@ from typing import ClassVar
 import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
-from services.safety.barriers.kernel import masked_min, pair_rows, segment_pairs
+from services.safety.barriers.kernel import (
+    DISABLED_B, finish_segment_rows, masked_min, pair_rows, segment_pairs, write_segment_block,
+)
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.geometry import EPS_NORMAL, safe_normal, segment_closest_points
-
-#: b of a disabled row (A = 0): 0 ≥ −1e9 always holds.
-DISABLED_B = -1e9
 
 
 @dataclass
@@ -54,6 +53,10 @@ class BarrierRows(RowBlock):
         """Minimum h over enabled self (or robot–human) rows; None if there is none."""
         count, low = masked_min(self.h, self.enabled, self.is_self, self_rows)
         return float(low) if count else None
+
+    def minima(self) -> tuple[float, float]:
+        low_self = self.min_h(True)
+        return self.min_h_all, float("inf") if low_self is None else low_self
 
 
 def swept_witness_points(segments: np.ndarray, radii: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -90,11 +93,55 @@ def segment_rows(
     need, min_h = segment_pairs(segments, radii, jacobians, velocities, first, second, n_robot, gamma, phi, lookahead,
                          EPS_NORMAL, distance, h, s, t, normal, A, b)
     if need:  # segments touching or crossing: the documented deterministic fallback normal, then the rows
-        rows = np.flatnonzero(distance < EPS_NORMAL)
-        ea, eb = segments[first[rows]], segments[second[rows]]
-        normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
+        fallback_normals(segments, first, second, distance, normal)
         pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, gamma, lookahead, A, b)
     return A, b, h, distance, float(min_h)
+
+
+def fallback_normals(segments: np.ndarray, first: np.ndarray, second: np.ndarray, distance: np.ndarray,
+                     normal: np.ndarray) -> None:
+    """Rows whose segments touch or cross (``distance`` < EPS_NORMAL) get the documented deterministic
+    fallback normal (:func:`shared.geometry.safe_normal`) in ``normal`` (m, 3)."""
+    rows = np.flatnonzero(distance < EPS_NORMAL)
+    ea, eb = segments[first[rows]], segments[second[rows]]
+    normal[rows] = safe_normal(np.zeros((len(rows), 3)), np.zeros((len(rows), 3)), (ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]))
+
+
+class SegmentRowWriter:
+    """The compiled fast path of the rows of sphere-swept segment pairs (:func:`segment_rows`'s values)
+    written in place (:meth:`Barrier.write_rows`): segments ``segments`` (S, 2, 3) whose first R are
+    the robot's (copied from the forward kinematics at every write), ``radii`` (S,), endpoint
+    ``velocities`` (S, 2, 3), row i pairing ``first[i]`` with ``second[i]``, with per-row ``flags``
+    (3, m) = (enabled, self-collision row, soft). The arrays are the owner's, read at every write
+    (the owner updates them in place; :attr:`flags` may be replaced)."""
+
+    def __init__(self, segments: np.ndarray, radii: np.ndarray, velocities: np.ndarray, first: np.ndarray,
+                 second: np.ndarray, flags: np.ndarray) -> None:
+        self.segments, self.radii, self.velocities, self.flags = segments, radii, velocities, flags
+        self.pairs = np.ascontiguousarray(np.stack([first, second]), dtype=np.int64)
+        m = self.pairs.shape[1]
+        self._st, self._normal = np.empty((2, m)), np.empty((m, 3))
+        # numba compiles on first use: the kernel of touching segments, which only such a rare step
+        # calls, is compiled now for the types of write's arguments (no row written), not in a control tick
+        finish_segment_rows(self._normal, self._st, np.zeros((0, 2, 3, 0)), velocities, self.pairs[:, :0], flags, 0, 0.0,
+                            0.0, 0, np.zeros((0, 0)), np.zeros(0), np.zeros(0, bool), np.zeros(0))
+
+    def write(self, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float, lookahead: float,
+              start: int, A: np.ndarray, b: np.ndarray, soft: np.ndarray, h: np.ndarray,
+              distance: np.ndarray) -> tuple[float, float]:
+        """Rows at the robot's ``endpoints`` (R, 2, 3) and ``jacobians`` (R, 2, 3, n) into rows ``start`` …
+        of ``A``, ``b``, ``soft``, ``h`` and their distances into ``distance`` (m,); returns
+        :meth:`RowBlock.minima`."""
+        pairs, flags, st, normal = self.pairs, self.flags, self._st, self._normal
+        need, low, low_self = write_segment_block(endpoints, self.segments, self.radii, jacobians, self.velocities,
+                                                  pairs, flags, gamma, phi, lookahead, distance, st, normal, start,
+                                                  A, b, soft, h)
+        if need:  # segments touching or crossing: the fallback normals, then the rows
+            fallback_normals(self.segments, pairs[0], pairs[1], distance, normal)
+            low, low_self = finish_segment_rows(normal, st, jacobians, self.velocities, pairs, flags, endpoints.shape[0],
+                                                gamma, lookahead, start, A, b, soft, h)
+        return low, low_self
+
 
 
 class CollisionGeometry(Barrier):
@@ -137,6 +184,12 @@ class CollisionGeometry(Barrier):
         """Per-row arrays that are the same every step (shared by every BarrierRows, never written)."""
         self._row_soft = ~self._row_is_self
         self._row_all_enabled = np.ones(len(self._row_capsule), bool)
+        self._row_enabled = self._row_all_enabled
+        #: (3, m) per row: enabled (updated in place by :meth:`set_external`), self-collision row, soft
+        #: (the flags of :class:`SegmentRowWriter`)
+        self._flags = np.stack([self._row_enabled, self._row_is_self, self._row_soft])
+        #: The rows of the last evaluation (:meth:`evaluate` or :meth:`write_rows`).
+        self.last_rows: BarrierRows | None = None
 
     def row_names(self) -> tuple[str, ...]:
         """The monitored pair of each row (a pair of several collider rows repeats its name)."""
@@ -165,6 +218,8 @@ class CollisionGeometry(Barrier):
             self._velocities[ext] = 0.0 if velocities is None else velocities
             self._external_changed()
         self._all_enabled = bool(self._valid.all())
+        self._row_enabled = self._row_all_enabled if self._all_enabled else self._valid[self._row_capsule]
+        self._flags[0] = self._row_enabled
 
     def _external_changed(self) -> None:
         """Hook: the external capsules changed (backends fit their external colliders here)."""
@@ -195,8 +250,9 @@ class CollisionGeometry(Barrier):
         else:
             enabled = self._row_all_enabled
             min_h_all = min_h if min_h is not None else float(h.min()) if len(h) else float("inf")
-        return BarrierRows(A=A, b=b, soft=self._row_soft, h=h, distance=distance, enabled=enabled,
-                           is_self=self._row_is_self, min_h_all=min_h_all)
+        self.last_rows = BarrierRows(A=A, b=b, soft=self._row_soft, h=h, distance=distance, enabled=enabled,
+                                     is_self=self._row_is_self, min_h_all=min_h_all)
+        return self.last_rows
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
                         lookahead: float, accel: np.ndarray | None = None) -> BarrierRows:

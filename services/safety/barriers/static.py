@@ -18,7 +18,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from services.safety.barriers.base import Barrier
-from services.safety.barriers.pairs import BarrierRows, segment_rows
+from services.safety.barriers.pairs import BarrierRows, SegmentRowWriter, segment_rows
 from services.safety.pairs import N_ROBOT
 from shared.names import CAPSULE_NAMES
 
@@ -46,6 +46,9 @@ class StaticCapsuleBarrier(Barrier):
         self._n_joints = n_joints
         m = len(self.names)
         self._hard, self._self, self._enabled = np.zeros(m, bool), np.ones(m, bool), np.ones(m, bool)
+        self._writer = SegmentRowWriter(self._segments, self._radii, self._velocities, self._first, self._second,
+                                        np.stack([self._enabled, self._self, self._hard]))
+        self._distance = np.empty(m)  # write_rows' distances (not returned)
 
     @classmethod
     def for_robot(cls, kinematics, robot_radii: np.ndarray, pairs: Sequence[tuple[str, str]]) -> StaticCapsuleBarrier:
@@ -66,6 +69,12 @@ class StaticCapsuleBarrier(Barrier):
                                                 self._second, N_ROBOT, gamma, phi, 0.0)
         return BarrierRows(A=A, b=b, soft=self._hard, h=h, distance=distance, enabled=self._enabled,
                            is_self=self._self, min_h_all=min_h)
+
+    def write_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
+                   lookahead: float, accel: np.ndarray | None, start: int, A: np.ndarray, b: np.ndarray,
+                   soft: np.ndarray, h: np.ndarray) -> tuple[float, float]:
+        """:meth:`constraint_rows` in one compiled call (:class:`SegmentRowWriter`)."""
+        return self._writer.write(endpoints, jacobians, gamma, phi, 0.0, start, A, b, soft, h, self._distance)
 
     def row_names(self) -> tuple[str, ...]:
         return self.names

@@ -1,5 +1,6 @@
-"""The QP's box and the integration step, compiled (numba): a few calls instead of ~16 numpy calls
-on 8-element arrays (and ~40 for the acceleration bound), the Python overhead that dominated the
+"""The QP's box and the integration step, compiled (numba): a step's inputs (u_ref and its first
+box) in one call and its end (clip, integration, ddq) in another, instead of ~16 numpy calls on
+8-element arrays (and ~40 for the acceleration bound), the Python overhead that dominated the
 safety step (the profile in docs/benchmarks.md).
 
 Element by element the same IEEE operations as the numpy expressions they replace, so results
@@ -13,6 +14,8 @@ and for an acceleration bound a (rad/s², braking share β; h = β a Δt / 2):
     upper ← min(upper, √(2 β a max(q_max − q, 0) + h²) − h)
     lower ← min(max(lower, h − √(2 β a max(q − q_min, 0) + h²)), upper)
     [lo, hi] = clip(u_prev ∓ f a Δt, lower, upper)
+
+and u_ref = K (q_nom − q) (+ q̇_nom), ddq = (u − u_prev)/Δt.
 """
 
 from __future__ import annotations
@@ -79,6 +82,59 @@ def _bounded(q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, fa
     return _reach(u_prev, accel, factor, dt, lower, upper, low, high)
 
 
+@njit(cache=True, nogil=True)
+def _reference_box(q_nom, dq_nom, feed, gain, q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, bounded,
+                   dt, u_ref, lower, upper, low, high):  # pragma: no cover - compiled
+    for j in range(q.shape[0]):
+        u = gain * (q_nom[j] - q[j])
+        u_ref[j] = u + dq_nom[j] if feed else u
+    if bounded:
+        return _bounded(q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, 1.0, dt, lower, upper, low, high)
+    _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper)
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _advance(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, u_out, q_out, q_copy, ddq):  # pragma: no cover - compiled
+    if not _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):
+        return False
+    for j in range(q.shape[0]):
+        q_copy[j] = q_out[j]
+        ddq[j] = (u_out[j] - u_prev[j]) / dt if has_prev else 0.0
+    return True
+
+
+def reference_and_box(q_nom: np.ndarray, dq_nom: np.ndarray | None, gain: float, q: np.ndarray, q_min: np.ndarray,
+                      q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray, accel: np.ndarray | None,
+                      share: float, u_prev: np.ndarray | None, dt: float, lower: np.ndarray, upper: np.ndarray,
+                      low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, bool, bool]:
+    """A step's inputs in one compiled call: (u_ref, bounded, within).
+
+    u_ref = ``gain`` (q_nom − q) (+ ``dq_nom``; None: none), a fresh array. Without an acceleration
+    bound (``accel`` or ``u_prev`` None; bounded False) ``lower``, ``upper`` ← :func:`velocity_box`
+    and within is True; with one, ``lower``, ``upper``, ``low``, ``high``, within ← :func:`bounded_box`
+    at factor 1 (the same values)."""
+    u_ref = np.empty(q.shape[0])
+    bounded = accel is not None and u_prev is not None
+    within = _reference_box(q_nom, u_max if dq_nom is None else dq_nom, dq_nom is not None, gain, q, q_min, q_max,
+                            u_max if u_min is None else u_min, u_max, u_min is None, accel if bounded else u_max, share,
+                            u_prev if bounded else u_max, bounded, dt, u_ref, lower, upper, low, high)
+    return u_ref, bounded, within
+
+
+def advance(u: np.ndarray, lower: np.ndarray, upper: np.ndarray, q: np.ndarray, dt: float, q_min: np.ndarray,
+            q_max: np.ndarray, u_prev: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The integration step and the command's acceleration in one compiled call: (u clipped to [lower,
+    upper], q⁺ = q + dt·u clipped to the joint limits, a copy of q⁺, ddq = (u − u_prev)/dt, zero without
+    ``u_prev``), fresh arrays; None when q⁺ is not finite."""
+    n = q.shape[0]
+    u_out, q_out, q_copy, ddq = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    if not _advance(u, lower, upper, q, dt, q_min, q_max, u if u_prev is None else u_prev, u_prev is not None, u_out,
+                    q_out, q_copy, ddq):
+        return None
+    return u_out, q_out, q_copy, ddq
+
+
 def velocity_box(q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray,
                  dt: float) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) (n,): the velocity bounds (u_min; None: −u_max) intersected with the joint
@@ -86,15 +142,6 @@ def velocity_box(q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, u_min: np.
     lower, upper = np.empty(q.shape[0]), np.empty(q.shape[0])
     _box(q, q_min, q_max, u_max if u_min is None else u_min, u_max, u_min is None, dt, lower, upper)
     return lower, upper
-
-
-def clip_and_step(u: np.ndarray, lower: np.ndarray, upper: np.ndarray, q: np.ndarray, dt: float, q_min: np.ndarray,
-                  q_max: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """(u clipped to [lower, upper], q + dt·u clipped to the joint limits), the latter None when
-    q + dt·u is not finite."""
-    u_out, q_out = np.empty(q.shape[0]), np.empty(q.shape[0])
-    finite = _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out)
-    return u_out, (q_out if finite else None)
 
 
 def reach_box(u_prev: np.ndarray, accel: np.ndarray, factor: float, dt: float, lower: np.ndarray,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from pathlib import Path
@@ -57,8 +56,16 @@ def _pack(neg_w, u_ref, lower_u, upper_u, b, f, upper, lower):  # pragma: no cov
 
 
 @njit(cache=True, nogil=True)
-def _rows_slack(A, b, u, tol, slack):  # pragma: no cover - compiled
-    """slack = A u − b; returns the rows with slack ≤ tol (active)."""
+def _settle(lam, dual_tol, sense, A, b, u, tol, slack):  # pragma: no cover - compiled
+    """After an optimal solve: ``sense`` ← the warm-start flags of ``lam`` (:func:`warm_sense`); −1 if
+    uᵀu is not finite (NaN/Inf, or an absurd |u| > 1e154), else slack = A u − b and the number of
+    rows with slack ≤ tol (active)."""
+    _warm_sense(lam, dual_tol, sense)
+    norm = 0.0
+    for j in range(u.shape[0]):
+        norm += u[j] * u[j]
+    if not np.isfinite(norm):
+        return -1
     active = 0
     for i in range(A.shape[0]):
         acc = 0.0
@@ -89,15 +96,17 @@ class DaqpBackend(QPBackend):
         self._w_src: np.ndarray | None = None  # the weights array H was last checked against
         self._H = np.empty((0, 0))
         self._neg_w = np.empty(0)
+        self._shape = (0, 0)  # (n, m) of the vectors below
+        self._f = np.empty(0)
         self._upper = np.empty(0)
         self._lower = np.empty(0)
         self._sense = np.zeros(0, dtype=np.intc)
         self._cold = np.zeros(0, dtype=np.intc)
 
-    def _buffers(self, problem: QPProblem) -> None:
+    def _buffers(self, problem: QPProblem, shape: tuple[int, int]) -> None:
         """(Re)build H only when the weights change (the same array object as last time counts as
-        unchanged: FilterParams are replaced, never mutated) and the bound vectors when the sizes do."""
-        n, m = problem.n, problem.m
+        unchanged: FilterParams are replaced, never mutated) and the vectors when the ``shape`` (n, m)
+        does."""
         w = problem.w
         if w is not self._w_src:
             if self._w is None or not np.array_equal(self._w, w):
@@ -105,18 +114,22 @@ class DaqpBackend(QPBackend):
                 self._H = np.diag(self._w)
                 self._neg_w = -self._w
             self._w_src = w
-        if self._upper.shape[0] != n + m:
+        if shape != self._shape:
+            n, m = shape
+            self._f = np.empty(n)
             self._upper = np.full(n + m, _INF)
             self._lower = np.empty(n + m)
             self._sense = np.zeros(n + m, dtype=np.intc)
             self._cold = np.zeros(n + m, dtype=np.intc)
             self._warm = False
+            self._shape = shape
 
     def solve(self, problem: QPProblem) -> QPSolution:
         start = time.perf_counter()
-        self._buffers(problem)
-        H, upper, lower = self._H, self._upper, self._lower
-        f = np.empty(problem.n)
+        shape = (problem.u_ref.shape[0], problem.b.shape[0])
+        if problem.w is not self._w_src or shape != self._shape:
+            self._buffers(problem, shape)
+        H, f, upper, lower = self._H, self._f, self._upper, self._lower
         _pack(self._neg_w, problem.u_ref, problem.lower, problem.upper, problem.b, f, upper, lower)
         warm = self._warm and self.warm_start
         x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._sense if warm else self._cold,
@@ -126,13 +139,12 @@ class DaqpBackend(QPBackend):
             x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._cold, **self._settings)
             iterations += info["iterations"]
         if exitflag in (1, 2):
-            _warm_sense(info["lam"], _DUAL_TOL, self._sense)
+            slack = np.empty(problem.m)
+            active = _settle(info["lam"], _DUAL_TOL, self._sense, problem.A, problem.b, x, self.active_tol, slack)
             self._warm = True
             seconds = time.perf_counter() - start
-            if not math.isfinite(x.dot(x)):  # NaN/Inf (or an absurd |u| > 1e154) anywhere
+            if active < 0:
                 return QPSolution(None, QPStatus.FAILED, seconds, iterations)
-            slack = np.empty(problem.m)
-            active = _rows_slack(problem.A, problem.b, x, self.active_tol, slack)
             return QPSolution(x, QPStatus.OPTIMAL, seconds, iterations, active, problem, slack)
         self._warm = False
         status = QPStatus.INFEASIBLE if exitflag == -1 else QPStatus.FAILED
