@@ -80,6 +80,10 @@ class SimRobot:
         kp_kd = np.array([self.gains.of(j, True) for j in self.joint_names])
         self._ff = kp_kd[:, 1] / kp_kd[:, 0]
         self._inv_kp = 1.0 / kp_kd[:, 0]
+        # the servos holding every other joint at home, their dofs and 1/kp (their share of the feed-forward)
+        self._held = np.setdiff1d(np.arange(m.nu), self._act)
+        self._held_dof = m.jnt_dofadr[m.actuator_trnid[self._held, 0]]
+        self._held_inv_kp = 1.0 / m.actuator_gainprm[self._held, 0]
         self._inertia = np.zeros((m.nv, m.nv))  # the joint-space inertia, dense (mj_fullM)
 
         self._human_geom = np.array([[m.geom(human_body_name(c, p)).id for c in CAPSULE_NAMES] for p in range(self.people)])
@@ -123,14 +127,18 @@ class SimRobot:
     # ------------------------------------------------------------------------- inputs
     def set_command(self, q: np.ndarray, dq: np.ndarray | None = None, ddq: np.ndarray | None = None) -> np.ndarray:
         """Servo the imitation joints to ``q`` (rad) with velocity feed-forward ``dq`` (rad/s) and,
-        with ``gains.torque_feedforward``, the torque of the commanded acceleration ``ddq`` (rad/s²):
+        with ``gains.torque_feedforward``, the torque of the commanded acceleration ``ddq`` (rad/s²)
+        on every servo, the imitation joints' (I) and those holding the other joints at home (H):
 
-            τ_ff = M_II(q) q̈_ref + c_I(q, q̇)
+            τ_ff = M_{·I}(q) q̈_ref + c(q, q̇)        (rows I and H)
 
-        (I: the imitation joints; M from the last physics step's state; c = the bias forces minus
-        the servos' gravity compensation: Coriolis and centrifugal torques, which a fast arm puts on
-        the waist). ``q`` is clipped to the joint ranges; returns the target actually applied.
-        Raises ValueError for a wrong shape or a non-finite value.
+        (M from the last physics step's state; c = the bias forces minus the servos' gravity
+        compensation: Coriolis and centrifugal torques, which a fast arm puts on the waist). The
+        held joints' share is the reaction of the imitation joints' acceleration (an arm swinging
+        forward twists the waist yaw and the shoulder yaw): without it they give way by up to
+        0.03 rad, and their motion couples back into the imitation joints. ``q`` is clipped to the
+        joint ranges; returns the target actually applied. Raises ValueError for a wrong shape or a
+        non-finite value.
         """
         n = len(self.joint_names)
         q = np.asarray(q, dtype=float)
@@ -142,15 +150,20 @@ class SimRobot:
         target = np.clip(q, self.q_min, self.q_max)
         ctrl = target + self._ff * dq
         if self.gains.torque_feedforward:
-            ctrl += self._inv_kp * self.feedforward_torque(ddq)
+            imitation, held = self.feedforward_torque(ddq)
+            ctrl += self._inv_kp * imitation
+            self.data.ctrl[self._held] = self._ctrl_home[self._held] + self._held_inv_kp * held
         self.data.ctrl[self._act] = ctrl
         return target
 
-    def feedforward_torque(self, ddq: np.ndarray) -> np.ndarray:
-        """τ_ff (N·m, imitation joints) of :meth:`set_command` for the acceleration ``ddq`` (rad/s²)."""
+    def feedforward_torque(self, ddq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """τ_ff (N·m) of :meth:`set_command` for the acceleration ``ddq`` (rad/s²): on the imitation
+        joints (8,) and on the held joints (servo order of the others)."""
         mujoco.mj_fullM(self.model, self.data, self._inertia)
-        bias = self.data.qfrc_bias[self._dadr] - self.data.qfrc_gravcomp[self._dadr]
-        return self._inertia[np.ix_(self._dadr, self._dadr)] @ ddq + bias
+        bias = self.data.qfrc_bias - self.data.qfrc_gravcomp
+        imitation = self._inertia[np.ix_(self._dadr, self._dadr)] @ ddq + bias[self._dadr]
+        held = self._inertia[np.ix_(self._held_dof, self._dadr)] @ ddq + bias[self._held_dof]
+        return imitation, held
 
     def set_human(self, capsules: np.ndarray, radii: np.ndarray, valid: np.ndarray, person: int = 0) -> None:
         """Place ``person``'s capsules: ``capsules[i] = (a_i, b_i)`` in the world/robot frame (m),
