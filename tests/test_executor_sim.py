@@ -147,6 +147,35 @@ def test_torque_feed_forward_follows_an_acceleration_bounded_swing(sim: SimRobot
     assert with_ff[waist] < 0.3 * without[waist], (with_ff, without)  # measured: 0.003 against 0.019 rad
 
 
+def _track_bang_bang(sim: SimRobot, lead: bool) -> float:
+    """Max |q − q_ref| of the right shoulder pitch at the end of each period, over 0.8 s of a
+    command accelerating at ±60 rad/s² (the default accel_max of the arms), q_ref = q_cbf⁺."""
+    sim.reset()
+    j = sim.joint_names.index("right_shoulder_pitch_joint")
+    dt, q, u, worst = sim.timestep, sim.q_home.copy(), np.zeros(8), 0.0
+    for k in range(round(0.8 / dt)):
+        phase = (k * dt) % 0.4
+        accel = np.zeros(8)
+        accel[j] = 60.0 if phase < 0.1 or phase >= 0.3 else -60.0
+        u_next = u + accel * dt
+        q = q + u_next * dt
+        sim.set_command(q, u_next, (u_next - u) / dt, lead_s=dt if lead else 0.0)
+        u = u_next
+        sim.step()
+        worst = max(worst, abs(sim.q[j] - q[j]))
+    return worst
+
+
+def test_servos_follow_the_command_over_its_period_not_ahead_of_it(sim: SimRobot) -> None:
+    """A command's q is the end of its period (q_cbf⁺ = q_cbf + Δt u*): servos aimed there from
+    the period's start run ahead of the command (extra torque kp Δt |u|); following the command's
+    trajectory over the period they stay several times closer (measured 0.0027 against 0.0104 rad)."""
+    with_lead, without = _track_bang_bang(sim, True), _track_bang_bang(sim, False)
+    assert with_lead < 0.4 * without, (with_lead, without)
+    with pytest.raises(ValueError, match="lead_s"):
+        sim.set_command(sim.q_home, lead_s=-0.001)
+
+
 def test_arm_commanded_into_the_torso_is_a_robot_robot_contact(sim: SimRobot) -> None:
     sim.set_command(with_joints(sim, left_shoulder_pitch_joint=-0.6, left_shoulder_roll_joint=-0.8))
     sim.step(250)

@@ -14,6 +14,8 @@ Units SI: metres, radians, seconds, newton-metres.
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import numpy as np
 
@@ -101,6 +103,7 @@ class SimRobot:
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = self._qpos_home
         self.data.ctrl[:] = self._ctrl_home
+        self._ctrl_end, self._dq_ref, self._lead_left = self._ctrl_home[self._act].copy(), np.zeros(len(self._act)), 0.0
         self.clear_human()
         mujoco.mj_forward(self.model, self.data)
 
@@ -125,7 +128,8 @@ class SimRobot:
         return self.data.qvel[self._dadr].copy()
 
     # ------------------------------------------------------------------------- inputs
-    def set_command(self, q: np.ndarray, dq: np.ndarray | None = None, ddq: np.ndarray | None = None) -> np.ndarray:
+    def set_command(self, q: np.ndarray, dq: np.ndarray | None = None, ddq: np.ndarray | None = None,
+                    lead_s: float = 0.0) -> np.ndarray:
         """Servo the imitation joints to ``q`` (rad) with velocity feed-forward ``dq`` (rad/s) and,
         with ``gains.torque_feedforward``, the torque of the commanded acceleration ``ddq`` (rad/s²)
         on every servo, the imitation joints' (I) and those holding the other joints at home (H):
@@ -136,9 +140,15 @@ class SimRobot:
         compensation: Coriolis and centrifugal torques, which a fast arm puts on the waist). The
         held joints' share is the reaction of the imitation joints' acceleration (an arm swinging
         forward twists the waist yaw and the shoulder yaw): without it they give way by up to
-        0.03 rad, and their motion couples back into the imitation joints. ``q`` is clipped to the
-        joint ranges; returns the target actually applied. Raises ValueError for a wrong shape or a
-        non-finite value.
+        0.03 rad, and their motion couples back into the imitation joints.
+
+        ``lead_s``: ``q`` is where the joints should be ``lead_s`` seconds from now (a safety command
+        q_cbf⁺ = q_cbf + Δt u* is the end of its control period): over the next physics steps the
+        servos' position reference is that trajectory, q − (time left) · dq, reaching ``q`` after
+        ``lead_s`` and staying there. A PD servo aimed at the end of the period from its start runs
+        ahead of the command by ≈ kp Δt |dq| of extra torque (0.01 rad at 6 rad/s on a shoulder).
+        ``q`` is clipped to the joint ranges; returns the target actually applied (the clipped q).
+        Raises ValueError for a wrong shape, a non-finite value or a negative ``lead_s``.
         """
         n = len(self.joint_names)
         q = np.asarray(q, dtype=float)
@@ -147,13 +157,16 @@ class SimRobot:
             raise ValueError(f"q, dq and ddq must have shape ({n},), got {q.shape}, {dq.shape} and {ddq.shape}")
         if not (np.isfinite(q).all() and np.isfinite(dq).all() and np.isfinite(ddq).all()):
             raise ValueError("q, dq and ddq must be finite")
+        if not (lead_s >= 0.0 and math.isfinite(lead_s)):
+            raise ValueError(f"lead_s must be finite and >= 0, got {lead_s}")
         target = np.clip(q, self.q_min, self.q_max)
         ctrl = target + self._ff * dq
         if self.gains.torque_feedforward:
             imitation, held = self.feedforward_torque(ddq)
             ctrl += self._inv_kp * imitation
             self.data.ctrl[self._held] = self._ctrl_home[self._held] + self._held_inv_kp * held
-        self.data.ctrl[self._act] = ctrl
+        self._ctrl_end, self._dq_ref, self._lead_left = ctrl, dq, lead_s
+        self.data.ctrl[self._act] = ctrl - lead_s * dq
         return target
 
     def feedforward_torque(self, ddq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -231,9 +244,19 @@ class SimRobot:
 
     # ------------------------------------------------------------------------- physics
     def step(self, n: int = 1) -> None:
-        """Advance the physics by ``n`` steps of :attr:`timestep`; positions (geoms, bodies) are then
+        """Advance the physics by ``n`` steps of :attr:`timestep` (the servos' reference moving along
+        the command's ``lead_s`` trajectory, :meth:`set_command`); positions (geoms, bodies) are then
         those of the new joint angles, so distances and contacts are taken where the robot is."""
-        mujoco.mj_step(self.model, self.data, nstep=n)
+        h = self.timestep
+        while n > 0 and self._lead_left > 0.0:
+            self.data.ctrl[self._act] = self._ctrl_end - self._lead_left * self._dq_ref
+            mujoco.mj_step(self.model, self.data)
+            self._lead_left = self._lead_left - h if self._lead_left > 1.5 * h else 0.0
+            if self._lead_left == 0.0:
+                self.data.ctrl[self._act] = self._ctrl_end
+            n -= 1
+        if n > 0:
+            mujoco.mj_step(self.model, self.data, nstep=n)
         mujoco.mj_kinematics(self.model, self.data)
         mujoco.mj_comPos(self.model, self.data)
 
