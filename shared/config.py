@@ -359,8 +359,10 @@ class ExecutorConfig(_Section):
         default=True,
         description="simulation: the servos add the inverse dynamics of the commanded motion, M(q) q̈_ref + c(q, q̇) "
         "(the command's acceleration through the joint-space inertia, and the Coriolis/centrifugal torques; gravity "
-        "is gravity_compensation's), so a PD servo follows an acceleration-bounded command instead of trailing it "
-        "by M q̈/kp; false: position + velocity feed-forward only",
+        "is gravity_compensation's) on every servo (the joints held at home take the reaction), plus the joints' "
+        "Coulomb friction in the direction of the commanded velocity, so a PD servo follows an acceleration-bounded "
+        "command instead of trailing it by M q̈/kp (and a slow one by friction/kp); false: position + velocity "
+        "feed-forward only",
     )
     stats_interval_s: float = Field(default=5.0, gt=0, le=3600, description="one-line summary this often (s)")
     backend: ExecutorBackend = Field(default=ExecutorBackend.MUJOCO, description="mujoco (simulation) | g1 (the real robot)")

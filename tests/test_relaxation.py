@@ -154,6 +154,55 @@ def test_an_already_violated_static_row_is_named_and_never_deepened() -> None:
         checked += 1
 
 
+def test_a_self_row_a_hair_past_its_boundary_brakes_within_the_acceleration_bound() -> None:
+    """An arm moving into a self pair that sampling has carried a hair (0.03–0.3 mm) past its
+    boundary: the violated row may not demand A_i u ≥ 0 at once (no bounded box could give it while
+    the arm still moves in; the bound would be widened, a jump the servos trail): it brakes as hard
+    as the bound allows, A_i u ≥ min(b_i, 0, A_i ū), ū the bounded box's point nearest rest, and
+    the bound holds."""
+    p = pipeline_for()
+    p.barrier.set_external(None)
+    kin, a = p.kinematics, p.filter.params.accel_max
+    joint_rows = np.concatenate([np.full(len(b.row_names()), isinstance(b, JointBarrier)) for b in p.filter.barriers])
+    rng = np.random.default_rng(11)
+    checked = 0
+    while checked < 5:
+        q0 = rng.uniform(kin.q_min, kin.q_max)
+        A, b, soft = stacked(p, q0)
+        if not (b[~soft] <= 0.0).all():
+            continue
+        direction = rng.normal(size=8)
+        direction /= np.linalg.norm(direction)
+        low, high = 0.0, 1.0  # bisect along the direction for a self row 0.03–0.3 mm past its boundary
+        if (stacked(p, np.clip(q0 + high * direction, kin.q_min, kin.q_max))[1][~soft] <= 0.0).all():
+            continue
+        for _ in range(60):
+            mid = 0.5 * (low + high)
+            _, b_mid, _ = stacked(p, np.clip(q0 + mid * direction, kin.q_min, kin.q_max))
+            low, high = (mid, high) if (b_mid[~soft] <= 0.0).all() else (low, mid)
+            if 3e-4 * p.filter.params.gamma < b_mid[~soft].max() < 3e-3 * p.filter.params.gamma:
+                break
+        else:
+            continue
+        q = np.clip(q0 + mid * direction, kin.q_min, kin.q_max)
+        A, b, soft = stacked(p, q)
+        violated = ~soft & (b > 0.0)
+        if (violated & joint_rows).any():
+            continue  # a joint barrier, not a self pair
+        p.filter.reset(q)
+        p.filter._u_prev = 1.0 * direction  # noqa: SLF001 (moving in at 1 rad/s: the state a previous step leaves)
+        lower, upper, honours = next(p.filter._boxes(q, DT))  # noqa: SLF001
+        brake = np.clip(0.0, lower, upper)
+        if not honours or (A[~soft & ~violated] @ brake < b[~soft & ~violated] - 1e-9).any():
+            continue  # a joint limit or another hard row needs more than the bound: not this test's case
+        result = p.filter.step(q + direction, DT)  # imitation pulling further in
+        assert result.mode is SafetyMode.RELAXED and "accel_max" not in result.gave_way, result.gave_way
+        assert (np.abs(result.u - 1.0 * direction) <= a * DT + 1e-9).all()
+        assert (A[violated] @ result.u >= np.minimum(0.0, A[violated] @ brake) - 1e-6).all()
+        assert (A[~soft & ~violated] @ result.u >= b[~soft & ~violated] - 1e-6).all()
+        checked += 1
+
+
 def test_joint_barrier_rows_are_a_barrier_kind() -> None:
     p = pipeline_for()
     joints = [b for b in p.filter.barriers if isinstance(b, JointBarrier)]

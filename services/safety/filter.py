@@ -29,7 +29,12 @@ are solved in order (a lexicographic solve). Inside an acceleration bound (below
 toward a person may be unable to stop within one step: there a soft row's floor is the hardest
 braking the box allows, A_i u ≥ min(b_i, 0, A_i ū) with ū the box's point nearest rest (0 when
 the box holds 0): the robot closes in no faster than braking as hard as the bound lets it, the
-most a real robot can do (commanding more only leaves its servos behind):
+most a real robot can do (commanding more only leaves its servos behind). An already violated
+hard row (b_i > 0) gets the same floor: a self pair that sampling has carried a hair past its
+boundary (h ≈ −0.03 mm after a long slide along it) would otherwise demand A_i u ≥ 0 at once, no
+acceleration-bounded box could give it while the arm still moves along, and the bound would be
+widened up to ×16: a command jump the servos trail by ≈ 0.01 rad, millimetres deeper at the
+robot than the hair at q_cbf:
 
 1. least violation: min Σ c_i σ_i (+ ½ε‖u − u_ref‖²_W + ½ε‖σ‖² to make it strictly convex),
    c_i = 1 for a soft row and ``relax_penalty`` for a hard row that is already violated;
@@ -41,8 +46,9 @@ most a real robot can do (commanding more only leaves its servos behind):
 whenever 0 lies in the box, which holds in the last box tried (the velocity box alone, the
 acceleration bound dropped; ū = 0 there) because q_cbf stays within the joint limits and
 u_min ≤ 0 < u_max: row i reads 0 + max(b_i, 0) ≥ b_i, and σ_i's bounds contain max(b_i, 0).
-In an acceleration-bounded box u = ū satisfies every soft row by the choice of its floor, so only
-the hard rows can make that box infeasible (then the next, wider one is tried).
+In an acceleration-bounded box u = ū satisfies every soft and every violated row by the choice of
+its floor, so only the hard rows that hold can make that box infeasible (then the next, wider one
+is tried).
 In particular the hard rows (self pairs, joint barriers) whose b_i ≤ 0 at the step's start
 (they hold: h ≥ 0 ⇔ b = −γ h ≤ 0) are never relaxed; a violated one (b_i > 0, which the hard
 rows prevent from happening) is softened the same way at cost ``relax_penalty``.
@@ -357,13 +363,15 @@ class SafetyFilter:
     def _relax(self, problem: QPProblem, soft: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, float]:
         """The lexicographic relaxed solve (module docstring): (u or None, slacks (m,), seconds).
 
-        Row i may fall to its floor f_i = min(b_i, 0) (a soft row: min(b_i, 0, A_i ū), ū the box's
-        point nearest rest): σ_i ∈ [0, b_i − f_i]. Only rows with b_i > f_i get a slack variable.
+        Row i may fall to its floor f_i = min(b_i, 0) (a soft row or a violated one, b_i > 0:
+        min(b_i, 0, A_i ū), ū the box's point nearest rest): σ_i ∈ [0, b_i − f_i]. Only rows with
+        b_i > f_i get a slack variable: a hard row that holds (b_i ≤ 0) has none.
         """
         n, m = problem.n, problem.m
         floor = np.minimum(problem.b, 0.0)
         brake = np.clip(0.0, problem.lower, problem.upper)  # the box's point nearest rest: 0 in a velocity box
-        floor[soft] = np.minimum(floor[soft], problem.A[soft] @ brake)
+        give = soft | (problem.b > 0.0)
+        floor[give] = np.minimum(floor[give], problem.A[give] @ brake)
         slack_cap = problem.b - floor
         loose = np.flatnonzero(slack_cap > 0.0)
         k = len(loose)

@@ -33,6 +33,10 @@ MAX_HUMAN_COORD = 100.0
 _MIN_SIZE = 1e-4
 
 
+#: Below this commanded speed (rad/s) the friction feed-forward fades out (tanh): no chatter at rest.
+FRICTION_SPEED = 0.05
+
+
 class SimRobot:
     """The welded robot, its joint servos and the person's capsules in one MuJoCo model.
 
@@ -86,6 +90,7 @@ class SimRobot:
         self._held = np.setdiff1d(np.arange(m.nu), self._act)
         self._held_dof = m.jnt_dofadr[m.actuator_trnid[self._held, 0]]
         self._held_inv_kp = 1.0 / m.actuator_gainprm[self._held, 0]
+        self._friction = m.dof_frictionloss[self._dadr].copy()  # Coulomb friction of the imitation joints (N·m)
         self._inertia = np.zeros((m.nv, m.nv))  # the joint-space inertia, dense (mj_fullM)
 
         self._human_geom = np.array([[m.geom(human_body_name(c, p)).id for c in CAPSULE_NAMES] for p in range(self.people)])
@@ -134,10 +139,12 @@ class SimRobot:
         with ``gains.torque_feedforward``, the torque of the commanded acceleration ``ddq`` (rad/s²)
         on every servo, the imitation joints' (I) and those holding the other joints at home (H):
 
-            τ_ff = M_{·I}(q) q̈_ref + c(q, q̇)        (rows I and H)
+            τ_ff = M_{·I}(q) q̈_ref + c(q, q̇) + f_I tanh(q̇_ref / FRICTION_SPEED)        (rows I and H)
 
         (M from the last physics step's state; c = the bias forces minus the servos' gravity
-        compensation: Coriolis and centrifugal torques, which a fast arm puts on the waist). The
+        compensation: Coriolis and centrifugal torques, which a fast arm puts on the waist; f_I the
+        imitation joints' Coulomb friction (the model's frictionloss), in the direction of the
+        commanded velocity: without it a slow motion lags by f/kp, 0.002 rad on an arm). The
         held joints' share is the reaction of the imitation joints' acceleration (an arm swinging
         forward twists the waist yaw and the shoulder yaw): without it they give way by up to
         0.03 rad, and their motion couples back into the imitation joints.
@@ -162,19 +169,20 @@ class SimRobot:
         target = np.clip(q, self.q_min, self.q_max)
         ctrl = target + self._ff * dq
         if self.gains.torque_feedforward:
-            imitation, held = self.feedforward_torque(ddq)
+            imitation, held = self.feedforward_torque(ddq, dq)
             ctrl += self._inv_kp * imitation
             self.data.ctrl[self._held] = self._ctrl_home[self._held] + self._held_inv_kp * held
         self._ctrl_end, self._dq_ref, self._lead_left = ctrl, dq, lead_s
         self.data.ctrl[self._act] = ctrl - lead_s * dq
         return target
 
-    def feedforward_torque(self, ddq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """τ_ff (N·m) of :meth:`set_command` for the acceleration ``ddq`` (rad/s²): on the imitation
-        joints (8,) and on the held joints (servo order of the others)."""
+    def feedforward_torque(self, ddq: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """τ_ff (N·m) of :meth:`set_command` for the acceleration ``ddq`` (rad/s²) and velocity ``dq``
+        (rad/s): on the imitation joints (8,) and on the held joints (servo order of the others)."""
         mujoco.mj_fullM(self.model, self.data, self._inertia)
         bias = self.data.qfrc_bias - self.data.qfrc_gravcomp
-        imitation = self._inertia[np.ix_(self._dadr, self._dadr)] @ ddq + bias[self._dadr]
+        imitation = (self._inertia[np.ix_(self._dadr, self._dadr)] @ ddq + bias[self._dadr]
+                     + self._friction * np.tanh(dq / FRICTION_SPEED))
         held = self._inertia[np.ix_(self._held_dof, self._dadr)] @ ddq + bias[self._held_dof]
         return imitation, held
 
