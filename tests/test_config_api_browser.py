@@ -76,7 +76,9 @@ def test_console_loads_with_the_current_parameters(page, browser_context, consol
     sync_api.expect(page.locator("#robot-id")).to_have_text("g1")
     assert float(page.locator("#safety-form input[name=gamma]").input_value()) == safety["gamma"]
     assert float(page.locator("#safety-form input[name=dt]").input_value()) == pytest.approx(safety["dt"])
-    assert page.locator("#safety-vectors input").count() == 3 * 8
+    assert page.locator("#safety-vectors input").count() == 4 * 8  # w, u_min, u_max, accel_max
+    accel = [float(page.locator(f"#safety-form input[name='accel_max.{i}']").input_value()) for i in range(8)]
+    assert accel == safety["accel_max"]
     assert page.locator("#pair-groups input:checked").count() == len(safety["enabled_pair_groups"])
 
 
@@ -115,6 +117,13 @@ def test_changing_gamma_in_the_form_reaches_the_config(page, console: ApiServer,
     assert console.http.get("/api/config/history").json()["entries"][0]["who"] == "grace"
     sync_api.expect(page.locator("#config-version")).to_have_text(f"v{after['version']}")
     sync_api.expect(page.locator("#history tbody tr").first).to_contain_text("safety.gamma")
+
+    with FakeSafety(bus):  # one joint's acceleration bound: the whole vector is sent, the rest unchanged
+        page.fill("#safety-form input[name='accel_max.2']", "45")
+        page.click("#apply-safety")
+        sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
+    assert console.http.get("/api/config").json()["safety"]["accel_max"] == [*before["safety"]["accel_max"][:2], 45.0,
+                                                                             *before["safety"]["accel_max"][3:]]
 
     page.fill("#safety-form input[name=phi]", "7")  # out of range: the API's 422 names the field
     page.click("#apply-safety")

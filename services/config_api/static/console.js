@@ -99,6 +99,7 @@ function fillForms() {
   vectorRow(sv, "w", "w", s.w);
   vectorRow(sv, "u_min", "u_min", s.u_min, (i) => String(-s.u_max[i]));
   vectorRow(sv, "u_max", "u_max", s.u_max);
+  vectorRow(sv, "accel_max", "accel_max", s.accel_max, () => "none");
 
   const radii = $("radii");
   radii.replaceChildren();
@@ -144,7 +145,7 @@ function safetyPatch() {
     if (value !== s[name]) patch[name] = value;
   }
   if (f.elements.human_velocity_term.checked !== s.human_velocity_term) patch.human_velocity_term = f.elements.human_velocity_term.checked;
-  for (const name of ["w", "u_min", "u_max"]) {
+  for (const name of ["w", "u_min", "u_max", "accel_max"]) {
     const value = readVector(f, name);
     if (!same(value, s[name])) patch[name] = value;
   }
