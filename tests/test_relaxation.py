@@ -6,6 +6,8 @@ DAQP and OSQP; the least violation is checked against SciPy's LP solver."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.optimize import linprog
@@ -134,7 +136,7 @@ def test_an_already_violated_static_row_is_named_and_never_deepened() -> None:
     row in ``gave_way``, counts its h in ``min_h_self`` and never moves the arm deeper (A u ≥ 0)."""
     p = pipeline_for()
     p.barrier.set_external(None)
-    p.filter.params.u_max = np.full(8, 1e-3)  # rad/s: no retreat can cancel b = −γ h in one step
+    p.filter.params = dataclasses.replace(p.filter.params, u_max=np.full(8, 1e-3))  # rad/s: no retreat can cancel b = −γ h in one step
     static = next(b for b in p.filter.barriers if isinstance(b, StaticCapsuleBarrier))
     rng = np.random.default_rng(5)
     checked = 0
@@ -269,7 +271,7 @@ def test_warm_up_compiles_the_kernels_only_an_infeasible_step_uses() -> None:
 def test_warm_up_compiles_the_step_kernels() -> None:
     """After the pipeline's warm-up every kernel of the step is compiled (numba compiles on first use:
     no control tick may pay it): the barriers' in-place row writers, the kernel of touching segments
-    (only such a rare step calls it), the movable-row pass, u_ref with the first box, the
+    (only such a rare step calls it), the QP's inputs (u_ref, the first box, the movable rows), the
     integration and the DAQP backend's flags and slack."""
     from services.safety.barriers import kernel
     from services.safety.qp import box, daqp_backend
@@ -277,5 +279,5 @@ def test_warm_up_compiles_the_step_kernels() -> None:
     p = pipeline_for()
     p.warm_up(DT)
     for dispatcher in (kernel.write_segment_block, kernel.write_joint_block, kernel.finish_segment_rows,
-                       kernel.keep_movable, box._reference_box, box._advance, daqp_backend._settle):  # noqa: SLF001
+                       box.prepare_qp, box._advance, daqp_backend._settle):  # noqa: SLF001
         assert dispatcher.signatures, dispatcher.__name__

@@ -13,9 +13,8 @@ import daqp  # noqa: E402
 import numpy as np  # noqa: E402
 from numba import njit  # noqa: E402
 
-from services.safety.qp.base import QPBackend, QPProblem, QPSolution, QPStatus  # noqa: E402
+from services.safety.qp.base import INF_BOUND, QPBackend, QPProblem, QPSolution, QPStatus  # noqa: E402
 
-_INF = 1e30  # DAQP treats |bound| ≥ 1e30 as infinite
 #: DAQP's constraint flags (``sense``; include/constants.h): bit 1 = in the working set (active),
 #: bit 2 = active at its *lower* bound (clear: at its upper bound)
 DAQP_ACTIVE = 1
@@ -117,7 +116,7 @@ class DaqpBackend(QPBackend):
         if shape != self._shape:
             n, m = shape
             self._f = np.empty(n)
-            self._upper = np.full(n + m, _INF)
+            self._upper = np.full(n + m, INF_BOUND)
             self._lower = np.empty(n + m)
             self._sense = np.zeros(n + m, dtype=np.intc)
             self._cold = np.zeros(n + m, dtype=np.intc)
@@ -129,8 +128,12 @@ class DaqpBackend(QPBackend):
         shape = (problem.u_ref.shape[0], problem.b.shape[0])
         if problem.w is not self._w_src or shape != self._shape:
             self._buffers(problem, shape)
-        H, f, upper, lower = self._H, self._f, self._upper, self._lower
-        _pack(self._neg_w, problem.u_ref, problem.lower, problem.upper, problem.b, f, upper, lower)
+        H = self._H
+        if problem.stacked is None:
+            f, upper, lower = self._f, self._upper, self._lower
+            _pack(self._neg_w, problem.u_ref, problem.lower, problem.upper, problem.b, f, upper, lower)
+        else:  # the producer's own f and bounds in DAQP's layout (QPProblem.stacked)
+            f, lower, upper = problem.stacked
         warm = self._warm and self.warm_start
         x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._sense if warm else self._cold,
                                           **self._settings)
