@@ -281,3 +281,27 @@ def test_warm_up_compiles_the_step_kernels() -> None:
     for dispatcher in (kernel.write_segment_block, kernel.write_joint_block, kernel.finish_segment_rows,
                        box.prepare_qp, box._advance, daqp_backend._settle):  # noqa: SLF001
         assert dispatcher.signatures, dispatcher.__name__
+    # the kernels the step calls through their entry points are bound to them (no binding in a tick)
+    writers = [b._writer for b in p.filter.barriers if hasattr(b, "_writer")]  # noqa: SLF001
+    bound = [p.filter._prepare, *(b._write for b in p.filter.barriers if isinstance(b, JointBarrier)),  # noqa: SLF001
+             *(w._write for w in writers)]  # noqa: SLF001
+    assert len(bound) >= 3
+    for kernel_call in bound:
+        assert kernel_call.call != kernel_call._bind, kernel_call.dispatcher.__name__  # noqa: SLF001
+
+
+def test_a_bound_kernel_gives_the_dispatchers_values() -> None:
+    """BoundKernel calls the compiled entry point of its first call's argument types: the same values
+    as numba's dispatcher, call after call."""
+    from services.safety.barriers.kernel import BoundKernel, joint_rows
+
+    bound = BoundKernel(joint_rows)
+    q, index = np.linspace(-1.0, 1.0, 8), np.array([0, 3, 7], dtype=np.intp)
+    sign, limit, accel = np.array([1.0, -1.0, 1.0]), np.array([-0.5, 0.2, 0.9]), np.full(8, 3.0)
+    for gamma in (5.0, 0.5):
+        h, b, h_ref, b_ref = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+        bound.call(q, index, sign, limit, gamma, accel, 0.5, True, h, b)
+        joint_rows(q, index, sign, limit, gamma, accel, 0.5, True, h_ref, b_ref)
+        np.testing.assert_array_equal(h, h_ref)
+        np.testing.assert_array_equal(b, b_ref)
+    assert bound.call is not joint_rows

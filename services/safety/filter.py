@@ -68,7 +68,7 @@ import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
-from services.safety.barriers.kernel import movable_mask
+from services.safety.barriers.kernel import BoundKernel, movable_mask
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
 from services.safety.qp.base import INF_BOUND
@@ -123,6 +123,15 @@ class FilterParams:
     u_min: np.ndarray | None = None  # lower velocity bound (n,); None: −u_max
     human_lookahead_s: float = 0.0  # T of the human velocity term (s; see barrier.py)
     accel_max: np.ndarray | None = None  # |u − u_prev|/Δt bound (n,) rad/s²; None: none
+
+    def __post_init__(self) -> None:
+        """Scalars as float, arrays as contiguous float64 (the compiled step's bound argument types)."""
+        for name in ("gamma", "phi", "gain", "relax_penalty", "human_lookahead_s"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        for name in ("weights", "u_max", "u_min", "accel_max"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, np.ascontiguousarray(value, dtype=np.float64))
 
     @classmethod
     def from_config(cls, safety) -> FilterParams:  # shared.config.SafetyConfig
@@ -200,6 +209,7 @@ class SafetyFilter:
         self._stacked = np.empty((3, n + start))
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
+        self._prepare = BoundKernel(prepare_qp)
         self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
         self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.params = params
@@ -277,17 +287,20 @@ class SafetyFilter:
                                               soft_all, h_all)
             inside, low_self = min(inside, low), min(low_self, low_own)
         rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
-        q_nom = np.asarray(q_nom, dtype=np.float64)
+        q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
+        dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
+        if q_nom.shape != q.shape or dq_nom.shape != q.shape:
+            raise ValueError(f"q_nom and dq_nom must have shape {q.shape}")
         u_ref, boxes, u_prev = np.empty(n), self._box_rows, self._u_prev
         bounded = accel is not None and u_prev is not None
         # With enforce, rows no velocity can change (a pair of a static link such as a locked thigh, a
         # missing capsule's disabled row) hold or fail whatever u is: they are left out of the QP,
         # where a failing one would only make it infeasible (a person touching a static link is an
         # intrusion, reported below, not a row the robot could honour).
-        k, honours = prepare_qp(q_nom, q_nom if dq_nom is None else np.asarray(dq_nom, dtype=np.float64),
-                                dq_nom is not None, p.gain, q, self._limits, BRAKE_SHARE, u_prev if bounded else q,
-                                bounded, dt, u_ref, boxes, A_all, b_all, soft_all, _STATIC_ROW, self.enforce,
-                                self._A_qp, self._soft_qp, self._kept, self._stacked)
+        k, honours = self._prepare.call(q_nom, dq_nom, dq_nom is not q_nom, p.gain, q, self._limits, BRAKE_SHARE,
+                                        u_prev if bounded else q, bounded, float(dt), u_ref, boxes, A_all, b_all,
+                                        soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp, self._soft_qp,
+                                        self._kept, self._stacked)
         lower, upper = (boxes[LOW], boxes[HIGH]) if bounded else (boxes[LOWER], boxes[UPPER])
         A, b, stacked = self._qp_views(k)
         problem = QPProblem(p.weights, u_ref, A, b, lower, upper, stacked)
