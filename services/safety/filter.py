@@ -73,7 +73,7 @@ from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
 from services.safety.qp.base import INF_BOUND
 from services.safety.qp.box import (
-    HIGH, LOW, LOWER, UPPER, advance, bounded_box, limits_table, prepare_qp, reach_box, velocity_box,
+    HIGH, LOW, LOWER, UPPER, advance, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
 )
 from shared.messages import SafetyMode
 
@@ -209,7 +209,7 @@ class SafetyFilter:
         self._stacked = np.empty((3, n + start))
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
-        self._prepare = BoundKernel(prepare_qp)
+        self._prepare, self._advance = BoundKernel(prepare_qp), BoundKernel(integrate)
         self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
         self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.params = params
@@ -297,8 +297,9 @@ class SafetyFilter:
         # missing capsule's disabled row) hold or fail whatever u is: they are left out of the QP,
         # where a failing one would only make it infeasible (a person touching a static link is an
         # intrusion, reported below, not a row the robot could honour).
+        dt = float(dt)
         k, honours = self._prepare.call(q_nom, dq_nom, dq_nom is not q_nom, p.gain, q, self._limits, BRAKE_SHARE,
-                                        u_prev if bounded else q, bounded, float(dt), u_ref, boxes, A_all, b_all,
+                                        u_prev if bounded else q, bounded, dt, u_ref, boxes, A_all, b_all,
                                         soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp, self._soft_qp,
                                         self._kept, self._stacked)
         lower, upper = (boxes[LOW], boxes[HIGH]) if bounded else (boxes[LOWER], boxes[UPPER])
@@ -321,7 +322,7 @@ class SafetyFilter:
         if not honours:
             gave_way += (ACCEL_BOUND,)
         # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within the limits
-        advanced = advance(u, lower, upper, q, dt, self.q_min, self.q_max, self._u_prev)
+        advanced = advance(u, lower, upper, q, dt, self.q_min, self.q_max, self._u_prev, self._advance.call)
         if advanced is None:  # not finite
             u, q_next, mode = np.zeros(n), q.copy(), SafetyMode.HOLD
             q_result = q_next.copy()

@@ -143,7 +143,9 @@ def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt,
 
 
 @njit(cache=True, nogil=True)
-def _advance(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, u_out, q_out, q_copy, ddq):  # pragma: no cover - compiled
+def integrate(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, u_out, q_out, q_copy, ddq):  # pragma: no cover - compiled
+    """:func:`advance`'s kernel: u_out, q_out (q_copy a copy) and ddq (0 unless ``has_prev``); False
+    (the outputs partly written) when q_out is not finite."""
     if not _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):
         return False
     for j in range(q.shape[0]):
@@ -153,14 +155,19 @@ def _advance(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, u_out, q_ou
 
 
 def advance(u: np.ndarray, lower: np.ndarray, upper: np.ndarray, q: np.ndarray, dt: float, q_min: np.ndarray,
-            q_max: np.ndarray, u_prev: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+            q_max: np.ndarray, u_prev: np.ndarray | None,
+            kernel=integrate) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The integration step and the command's acceleration in one compiled call: (u clipped to [lower,
     upper], q⁺ = q + dt·u clipped to the joint limits, a copy of q⁺, ddq = (u − u_prev)/dt, zero without
-    ``u_prev``), fresh arrays; None when q⁺ is not finite."""
+    ``u_prev``), fresh arrays; None when q⁺ is not finite. ``kernel``: the compiled kernel, or the
+    call of a :class:`~services.safety.barriers.kernel.BoundKernel` of it (then the caller passes
+    lower, upper, q, q_min, q_max, u_prev as contiguous float64 (n,) and dt a float at every call; u,
+    a solver's, is made so here)."""
     n = q.shape[0]
+    u = np.ascontiguousarray(u, dtype=np.float64)
     u_out, q_out, q_copy, ddq = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    if not _advance(u, lower, upper, q, dt, q_min, q_max, u if u_prev is None else u_prev, u_prev is not None, u_out,
-                    q_out, q_copy, ddq):
+    if not kernel(u, lower, upper, q, dt, q_min, q_max, u if u_prev is None else u_prev, u_prev is not None, u_out,
+                  q_out, q_copy, ddq):
         return None
     return u_out, q_out, q_copy, ddq
 
