@@ -283,7 +283,7 @@ def test_warm_up_compiles_the_step_kernels() -> None:
         assert dispatcher.signatures, dispatcher.__name__
     # the kernels the step calls through their entry points are bound to them (no binding in a tick)
     writers = [b._writer for b in p.filter.barriers if hasattr(b, "_writer")]  # noqa: SLF001
-    bound = [p.filter._prepare, p.filter._advance, *(b._write for b in p.filter.barriers if isinstance(b, JointBarrier)),  # noqa: SLF001
+    bound = [p.filter._prepare, p.filter._integrate, *(b._write for b in p.filter.barriers if isinstance(b, JointBarrier)),  # noqa: SLF001
              *(w._write for w in writers)]  # noqa: SLF001
     assert len(bound) >= 3
     for kernel_call in bound:

@@ -73,7 +73,7 @@ from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
 from services.safety.qp.base import INF_BOUND
 from services.safety.qp.box import (
-    HIGH, LOW, LOWER, UPPER, advance, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
+    HIGH, LOW, LOWER, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
 )
 from shared.messages import SafetyMode
 
@@ -151,7 +151,8 @@ class FilterParams:
 @dataclass
 class StepResult:
     """Outcome of one step: the new q_cbf (n,), u* (n,), mode, the pair barrier's rows and solver
-    facts; ``relaxed`` (m,) the pair rows that gave way (their slack > 0; all False unless RELAXED);
+    facts; ``relaxed`` (m,) the pair rows that gave way (their slack > 0; all False unless RELAXED,
+    then a shared read-only array);
     ``intrusion``: a person capsule is inside the margin (h < 0 on a soft pair row) while the
     robot retreats from or holds against it (A_i u* ≥ 0); ``gave_way`` the names of every row of
     any barrier that gave way (:meth:`Barrier.row_names`, each once); ``min_h_self`` (m) the
@@ -209,7 +210,10 @@ class SafetyFilter:
         self._stacked = np.empty((3, n + start))
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
-        self._prepare, self._advance = BoundKernel(prepare_qp), BoundKernel(integrate)
+        self._prepare, self._integrate = BoundKernel(prepare_qp), BoundKernel(integrate)
+        # StepResult.relaxed of a step whose QP was feasible: no pair row gave way (shared, read-only)
+        self._none_relaxed = np.zeros(barrier.n_rows, bool)
+        self._none_relaxed.flags.writeable = False
         self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
         self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.params = params
@@ -293,11 +297,11 @@ class SafetyFilter:
             raise ValueError(f"q_nom and dq_nom must have shape {q.shape}")
         u_ref, boxes, u_prev = np.empty(n), self._box_rows, self._u_prev
         bounded = accel is not None and u_prev is not None
+        dt = float(dt)
         # With enforce, rows no velocity can change (a pair of a static link such as a locked thigh, a
         # missing capsule's disabled row) hold or fail whatever u is: they are left out of the QP,
         # where a failing one would only make it infeasible (a person touching a static link is an
         # intrusion, reported below, not a row the robot could honour).
-        dt = float(dt)
         k, honours = self._prepare.call(q_nom, dq_nom, dq_nom is not q_nom, p.gain, q, self._limits, BRAKE_SHARE,
                                         u_prev if bounded else q, bounded, dt, u_ref, boxes, A_all, b_all,
                                         soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp, self._soft_qp,
@@ -308,7 +312,7 @@ class SafetyFilter:
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
         u = solution.u
-        relaxed = np.zeros(rows.b.shape[0], bool)
+        relaxed = self._none_relaxed
         gave_way: tuple[str, ...] = ()
         if u is not None:
             active = solution.active_rows
@@ -321,14 +325,16 @@ class SafetyFilter:
             qp_time += seconds
         if not honours:
             gave_way += (ACCEL_BOUND,)
-        # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within the limits
-        advanced = advance(u, lower, upper, q, dt, self.q_min, self.q_max, self._u_prev, self._advance.call)
-        if advanced is None:  # not finite
+        # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within
+        # the limits, a copy of it and ddq: the rows of one fresh array (the solver's u as the kernel's type)
+        u, out = np.ascontiguousarray(u, dtype=np.float64), np.empty((4, n))
+        if self._integrate.call(u, lower, upper, q, dt, self.q_min, self.q_max, u if u_prev is None else u_prev,
+                              u_prev is not None, out):
+            u, q_next, q_result, ddq = out
+        else:  # not finite
             u, q_next, mode = np.zeros(n), q.copy(), SafetyMode.HOLD
             q_result = q_next.copy()
-            ddq = np.zeros(n) if self._u_prev is None else (u - self._u_prev) / dt
-        else:
-            u, q_next, q_result, ddq = advanced
+            ddq = np.zeros(n) if u_prev is None else (u - u_prev) / dt
         self.q_cbf = q_next
         self._u_prev = u
         intrusion = False

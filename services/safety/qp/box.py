@@ -1,6 +1,6 @@
 """The QP's box and the integration step, compiled (numba): a step's QP inputs (u_ref, its first
 box, the rows a velocity can move, all in DAQP's layout: :func:`prepare_qp`) in one call and its end
-(clip, integration, ddq) in another, instead of ~16 numpy calls on 8-element arrays (and ~40 for
+(clip, integration, ddq: :func:`integrate`) in another, instead of ~16 numpy calls on 8-element arrays (and ~40 for
 the acceleration bound), the Python overhead that dominated the safety step (the profile in
 docs/benchmarks.md).
 
@@ -143,33 +143,17 @@ def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt,
 
 
 @njit(cache=True, nogil=True)
-def integrate(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, u_out, q_out, q_copy, ddq):  # pragma: no cover - compiled
-    """:func:`advance`'s kernel: u_out, q_out (q_copy a copy) and ddq (0 unless ``has_prev``); False
-    (the outputs partly written) when q_out is not finite."""
+def integrate(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, out):  # pragma: no cover - compiled
+    """The integration step and the command's acceleration: ``out`` (4, n) rows ← u clipped to
+    [``lower``, ``upper``], q⁺ = q + dt·u clipped to the joint limits, a copy of q⁺, ddq = (u −
+    u_prev)/dt (zero unless ``has_prev``); False (``out`` partly written) when q⁺ is not finite."""
+    u_out, q_out = out[0], out[1]
     if not _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):
         return False
     for j in range(q.shape[0]):
-        q_copy[j] = q_out[j]
-        ddq[j] = (u_out[j] - u_prev[j]) / dt if has_prev else 0.0
+        out[2, j] = q_out[j]
+        out[3, j] = (u_out[j] - u_prev[j]) / dt if has_prev else 0.0
     return True
-
-
-def advance(u: np.ndarray, lower: np.ndarray, upper: np.ndarray, q: np.ndarray, dt: float, q_min: np.ndarray,
-            q_max: np.ndarray, u_prev: np.ndarray | None,
-            kernel=integrate) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """The integration step and the command's acceleration in one compiled call: (u clipped to [lower,
-    upper], q⁺ = q + dt·u clipped to the joint limits, a copy of q⁺, ddq = (u − u_prev)/dt, zero without
-    ``u_prev``), fresh arrays; None when q⁺ is not finite. ``kernel``: the compiled kernel, or the
-    call of a :class:`~services.safety.barriers.kernel.BoundKernel` of it (then the caller passes
-    lower, upper, q, q_min, q_max, u_prev as contiguous float64 (n,) and dt a float at every call; u,
-    a solver's, is made so here)."""
-    n = q.shape[0]
-    u = np.ascontiguousarray(u, dtype=np.float64)
-    u_out, q_out, q_copy, ddq = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    if not kernel(u, lower, upper, q, dt, q_min, q_max, u if u_prev is None else u_prev, u_prev is not None, u_out,
-                  q_out, q_copy, ddq):
-        return None
-    return u_out, q_out, q_copy, ddq
 
 
 def velocity_box(q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray,

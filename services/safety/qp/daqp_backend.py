@@ -88,7 +88,7 @@ class DaqpBackend(QPBackend):
     name = "daqp"
 
     def __init__(self, iter_limit: int = 1000, primal_tol: float = 1e-9, warm_start: bool = True) -> None:
-        self._settings = {"iter_limit": iter_limit, "primal_tol": primal_tol}
+        self._iter_limit, self._primal_tol = iter_limit, primal_tol  # passed as keywords (no ** dict per solve)
         self.warm_start = warm_start
         self._warm = False  # _sense holds a usable active set
         self._w: np.ndarray | None = None
@@ -136,10 +136,11 @@ class DaqpBackend(QPBackend):
             f, lower, upper = problem.stacked
         warm = self._warm and self.warm_start
         x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._sense if warm else self._cold,
-                                          **self._settings)
+                                          iter_limit=self._iter_limit, primal_tol=self._primal_tol)
         iterations = info["iterations"]
         if warm and exitflag not in (1, 2):  # e.g. the old working set is overdetermined now
-            x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._cold, **self._settings)
+            x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._cold, iter_limit=self._iter_limit,
+                                              primal_tol=self._primal_tol)
             iterations += info["iterations"]
         if exitflag in (1, 2):
             slack = np.empty(problem.m)
