@@ -588,8 +588,8 @@ def daqp_iterations(kinematics, pairs: PairSet, conf, q_nom: np.ndarray) -> dict
             np.copyto(args[1], (lam != 0.0).astype(np.intc))  # args[1]: the sense flags
             return active
 
-        if old_flags:
-            daqp_backend._settle = old_settle
+        if old_flags:  # the filter's problems are stacked: their _settle is the backend's bound one
+            daqp_backend._settle = backend._settle_stacked.call = old_settle
         try:
             f.reset(kinematics.q_home)
             for q in q_nom:

@@ -282,10 +282,11 @@ def test_warm_up_compiles_the_step_kernels() -> None:
                        box.prepare_qp, box.integrate, daqp_backend._settle):  # noqa: SLF001
         assert dispatcher.signatures, dispatcher.__name__
     # the kernels the step calls through their entry points are bound to them (no binding in a tick)
-    writers = [b._writer for b in p.filter.barriers if hasattr(b, "_writer")]  # noqa: SLF001
-    bound = [p.filter._prepare, p.filter._integrate, *(b._write for b in p.filter.barriers if isinstance(b, JointBarrier)),  # noqa: SLF001
-             *(w._write for w in writers)]  # noqa: SLF001
-    assert len(bound) >= 3
+    filt = p.filter
+    writers = [b._writer for b in filt.barriers if hasattr(b, "_writer")]  # noqa: SLF001
+    joints = [b._write for b in filt.barriers if isinstance(b, JointBarrier)]  # noqa: SLF001
+    bound = [filt._prepare, filt._integrate, filt._qp._settle_stacked, *joints, *(w._write for w in writers)]  # noqa: SLF001
+    assert len(writers) == 2 and len(joints) == 1  # the capsule and static pairs' writers, the joint rows
     for kernel_call in bound:
         assert kernel_call.call != kernel_call._bind, kernel_call.dispatcher.__name__  # noqa: SLF001
 
@@ -293,7 +294,8 @@ def test_warm_up_compiles_the_step_kernels() -> None:
 def test_a_bound_kernel_gives_the_dispatchers_values() -> None:
     """BoundKernel calls the compiled entry point of its first call's argument types: the same values
     as numba's dispatcher, call after call."""
-    from services.safety.barriers.kernel import BoundKernel, joint_rows
+    from services.safety.barriers.kernel import joint_rows
+    from services.safety.compiled import BoundKernel
 
     bound = BoundKernel(joint_rows)
     q, index = np.linspace(-1.0, 1.0, 8), np.array([0, 3, 7], dtype=np.intp)

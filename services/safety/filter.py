@@ -68,7 +68,8 @@ import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
-from services.safety.barriers.kernel import BoundKernel, movable_mask
+from services.safety.barriers.kernel import movable_mask
+from services.safety.compiled import BoundKernel
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
 from services.safety.qp.base import INF_BOUND

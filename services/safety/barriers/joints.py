@@ -17,7 +17,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from services.safety.barriers.base import NO_DISTANCE, Barrier, RowBlock
-from services.safety.barriers.kernel import BoundKernel, joint_rows, write_joint_block
+from services.safety.barriers.kernel import joint_rows, write_joint_block
+from services.safety.compiled import BoundKernel
 
 #: The share of a joint's acceleration bound it counts on to stop at a barrier or a joint limit (the
 #: rest is left to the other rows and joints competing for the same step).

@@ -33,8 +33,9 @@ import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.kernel import (
-    DISABLED_B, BoundKernel, finish_segment_rows, masked_min, pair_rows, segment_pairs, write_segment_block,
+    DISABLED_B, finish_segment_rows, masked_min, pair_rows, segment_pairs, write_segment_block,
 )
+from services.safety.compiled import BoundKernel
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.geometry import EPS_NORMAL, safe_normal, segment_closest_points
 

@@ -13,6 +13,7 @@ import daqp  # noqa: E402
 import numpy as np  # noqa: E402
 from numba import njit  # noqa: E402
 
+from services.safety.compiled import BoundKernel  # noqa: E402
 from services.safety.qp.base import INF_BOUND, QPBackend, QPProblem, QPSolution, QPStatus  # noqa: E402
 
 #: DAQP's constraint flags (``sense``; include/constants.h): bit 1 = in the working set (active),
@@ -101,6 +102,14 @@ class DaqpBackend(QPBackend):
         self._lower = np.empty(0)
         self._sense = np.zeros(0, dtype=np.intc)
         self._cold = np.zeros(0, dtype=np.intc)
+        # _settle of a stacked problem (QPProblem.stacked: its producer's own buffers, the same types
+        # at every solve) through its entry point; other problems through numba's dispatcher
+        self._settle_stacked = BoundKernel(_settle)
+
+    @property
+    def _settings(self) -> dict[str, float]:
+        """DAQP's settings, as the keywords every solve passes."""
+        return {"iter_limit": self._iter_limit, "primal_tol": self._primal_tol}
 
     def _buffers(self, problem: QPProblem, shape: tuple[int, int]) -> None:
         """(Re)build H only when the weights change (the same array object as last time counts as
@@ -144,7 +153,8 @@ class DaqpBackend(QPBackend):
             iterations += info["iterations"]
         if exitflag in (1, 2):
             slack = np.empty(problem.m)
-            active = _settle(info["lam"], _DUAL_TOL, self._sense, problem.A, problem.b, x, self.active_tol, slack)
+            settle = _settle if problem.stacked is None else self._settle_stacked.call
+            active = settle(info["lam"], _DUAL_TOL, self._sense, problem.A, problem.b, x, self.active_tol, slack)
             self._warm = True
             seconds = time.perf_counter() - start
             if active < 0:
