@@ -290,7 +290,10 @@ class SafetyFilter:
         for barrier, start in self._starts:
             low, low_own = barrier.write_rows(q, endpoints, jacobians, gamma, phi, lookahead, accel, start, A_all, b_all,
                                               soft_all, h_all)
-            inside, low_self = min(inside, low), min(low_self, low_own)
+            if low < inside:  # min(inside, low) without the call (a NaN never replaces a value, as in min)
+                inside = low
+            if low_own < low_self:
+                low_self = low_own
         rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
