@@ -241,8 +241,8 @@ def summarize(run: Run) -> dict[str, Any]:
 def breakdown(safety_filter: SafetyFilter, q_nom: np.ndarray) -> dict[str, float]:
     """Per-part p50 (µs) of one step, measured in situ by wrapping this instance's parts.
 
-    Parts: FK (kinematics.compute), rows (barrier.evaluate: closest points, h, normals and
-    rows in the compiled kernel), QP backend call (wrapper + daqp/osqp, QPSolution.solve_time_s);
+    Parts: FK (kinematics.compute), rows (every barrier's write_rows: closest points, h, normals and
+    rows in the compiled kernels), QP backend call (wrapper + daqp/osqp, QPSolution.solve_time_s);
     overhead = the step minus those (u_ref, bounds, QPProblem, mode logic, integration,
     StepResult). The wrappers add ~0.2 µs each; only this pass is instrumented.
     """
@@ -257,10 +257,11 @@ def breakdown(safety_filter: SafetyFilter, q_nom: np.ndarray) -> dict[str, float
             return out
         return wrapper
 
-    kin, barrier = safety_filter.kinematics, safety_filter.barrier
+    kin, barriers = safety_filter.kinematics, safety_filter.barriers
     qp = safety_filter._qp  # the filter's QP backend instance (private attribute)
     kin.compute = timed("fk", kin.compute)
-    barrier.evaluate = timed("barrier", barrier.evaluate)
+    for barrier in barriers:
+        barrier.write_rows = timed("barrier", barrier.write_rows)
     qp.solve = timed("qp_call", qp.solve)
     parts: dict[str, list[float]] = {k: [] for k in ("step", "fk", "rows", "qp_call", "overhead")}
     try:
@@ -278,7 +279,9 @@ def breakdown(safety_filter: SafetyFilter, q_nom: np.ndarray) -> dict[str, float
             parts["qp_call"].append(acc.get("qp_call", 0.0))
             parts["overhead"].append(total - acc.get("fk", 0.0) - acc.get("barrier", 0.0) - acc.get("qp_call", 0.0))
     finally:
-        del kin.compute, barrier.evaluate, qp.solve  # back to the class methods
+        del kin.compute, qp.solve  # back to the class methods
+        for barrier in barriers:
+            del barrier.write_rows
     out = {f"{k}_p50_us": float(np.median(v) * 1e6) for k, v in parts.items()}
     total = sum(out[f"{k}_p50_us"] for k in ("fk", "rows", "qp_call", "overhead"))
     out["share_of_sum"] = {k: out[f"{k}_p50_us"] / total for k in ("fk", "rows", "qp_call", "overhead")}
@@ -588,8 +591,8 @@ def daqp_iterations(kinematics, pairs: PairSet, conf, q_nom: np.ndarray) -> dict
             np.copyto(args[1], (lam != 0.0).astype(np.intc))  # args[1]: the sense flags
             return active
 
-        if old_flags:
-            daqp_backend._settle = old_settle
+        if old_flags:  # the filter's problems are stacked: their _settle is the backend's bound one
+            daqp_backend._settle = backend._settle_stacked.call = old_settle
         try:
             f.reset(kinematics.q_home)
             for q in q_nom:

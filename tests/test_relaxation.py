@@ -6,6 +6,8 @@ DAQP and OSQP; the least violation is checked against SciPy's LP solver."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.optimize import linprog
@@ -134,7 +136,7 @@ def test_an_already_violated_static_row_is_named_and_never_deepened() -> None:
     row in ``gave_way``, counts its h in ``min_h_self`` and never moves the arm deeper (A u ≥ 0)."""
     p = pipeline_for()
     p.barrier.set_external(None)
-    p.filter.params.u_max = np.full(8, 1e-3)  # rad/s: no retreat can cancel b = −γ h in one step
+    p.filter.params = dataclasses.replace(p.filter.params, u_max=np.full(8, 1e-3))  # rad/s: no retreat can cancel b = −γ h in one step
     static = next(b for b in p.filter.barriers if isinstance(b, StaticCapsuleBarrier))
     rng = np.random.default_rng(5)
     checked = 0
@@ -318,7 +320,7 @@ def test_warm_up_compiles_the_kernels_only_an_infeasible_step_uses() -> None:
 def test_warm_up_compiles_the_step_kernels() -> None:
     """After the pipeline's warm-up every kernel of the step is compiled (numba compiles on first use:
     no control tick may pay it): the barriers' in-place row writers, the kernel of touching segments
-    (only such a rare step calls it), the movable-row pass, u_ref with the first box, the
+    (only such a rare step calls it), the QP's inputs (u_ref, the first box, the movable rows), the
     integration and the DAQP backend's flags and slack."""
     from services.safety.barriers import kernel
     from services.safety.qp import box, daqp_backend
@@ -326,5 +328,31 @@ def test_warm_up_compiles_the_step_kernels() -> None:
     p = pipeline_for()
     p.warm_up(DT)
     for dispatcher in (kernel.write_segment_block, kernel.write_joint_block, kernel.finish_segment_rows,
-                       kernel.keep_movable, box._reference_box, box._advance, daqp_backend._settle):  # noqa: SLF001
+                       box.prepare_qp, box.integrate, daqp_backend._settle):  # noqa: SLF001
         assert dispatcher.signatures, dispatcher.__name__
+    # the kernels the step calls through their entry points are bound to them (no binding in a tick)
+    filt = p.filter
+    writers = [b._writer for b in filt.barriers if hasattr(b, "_writer")]  # noqa: SLF001
+    joints = [b._write for b in filt.barriers if isinstance(b, JointBarrier)]  # noqa: SLF001
+    bound = [filt._prepare, filt._integrate, filt._qp._settle_stacked, *joints, *(w._write for w in writers)]  # noqa: SLF001
+    assert len(writers) == 2 and len(joints) == 1  # the capsule and static pairs' writers, the joint rows
+    for kernel_call in bound:
+        assert kernel_call.call != kernel_call._bind, kernel_call.dispatcher.__name__  # noqa: SLF001
+
+
+def test_a_bound_kernel_gives_the_dispatchers_values() -> None:
+    """BoundKernel calls the compiled entry point of its first call's argument types: the same values
+    as numba's dispatcher, call after call."""
+    from services.safety.barriers.kernel import joint_rows
+    from services.safety.compiled import BoundKernel
+
+    bound = BoundKernel(joint_rows)
+    q, index = np.linspace(-1.0, 1.0, 8), np.array([0, 3, 7], dtype=np.intp)
+    sign, limit, accel = np.array([1.0, -1.0, 1.0]), np.array([-0.5, 0.2, 0.9]), np.full(8, 3.0)
+    for gamma in (5.0, 0.5):
+        h, b, h_ref, b_ref = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+        bound.call(q, index, sign, limit, gamma, accel, 0.5, True, h, b)
+        joint_rows(q, index, sign, limit, gamma, accel, 0.5, True, h_ref, b_ref)
+        np.testing.assert_array_equal(h, h_ref)
+        np.testing.assert_array_equal(b, b_ref)
+    assert bound.call is not joint_rows

@@ -74,10 +74,14 @@ import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
-from services.safety.barriers.kernel import keep_movable, movable_mask
+from services.safety.barriers.kernel import movable_mask
+from services.safety.compiled import BoundKernel
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
-from services.safety.qp.box import advance, bounded_box, reach_box, reference_and_box, velocity_box
+from services.safety.qp.base import INF_BOUND
+from services.safety.qp.box import (
+    HIGH, LOW, LOWER, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
+)
 from shared.messages import SafetyMode
 
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
@@ -112,9 +116,10 @@ def binding_rows(rows: BarrierRows, u: np.ndarray) -> np.ndarray:
     return rows.enabled & movable_rows(rows.A) & (rows.A @ u - rows.b <= QPBackend.active_tol)
 
 
-@dataclass
+@dataclass(frozen=True)
 class FilterParams:
-    """The tunable parameters of one step (subset of shared.config.SafetyConfig)."""
+    """The tunable parameters of one step (subset of shared.config.SafetyConfig); frozen: a change
+    replaces them (``dataclasses.replace``), which the filter's per-joint constants follow."""
 
     gamma: float
     phi: float
@@ -125,6 +130,15 @@ class FilterParams:
     u_min: np.ndarray | None = None  # lower velocity bound (n,); None: −u_max
     human_lookahead_s: float = 0.0  # T of the human velocity term (s; see barrier.py)
     accel_max: np.ndarray | None = None  # |u − u_prev|/Δt bound (n,) rad/s²; None: none
+
+    def __post_init__(self) -> None:
+        """Scalars as float, arrays as contiguous float64 (the compiled step's bound argument types)."""
+        for name in ("gamma", "phi", "gain", "relax_penalty", "human_lookahead_s"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        for name in ("weights", "u_max", "u_min", "accel_max"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, np.ascontiguousarray(value, dtype=np.float64))
 
     @classmethod
     def from_config(cls, safety) -> FilterParams:  # shared.config.SafetyConfig
@@ -144,7 +158,8 @@ class FilterParams:
 @dataclass
 class StepResult:
     """Outcome of one step: the new q_cbf (n,), u* (n,), mode, the pair barrier's rows and solver
-    facts; ``relaxed`` (m,) the pair rows that gave way (their slack > 0; all False unless RELAXED);
+    facts; ``relaxed`` (m,) the pair rows that gave way (their slack > 0; all False unless RELAXED,
+    then a shared read-only array);
     ``intrusion``: a person capsule is inside the margin (h < 0 on a soft pair row) while the
     robot retreats from or holds against it (A_i u* ≥ 0); ``gave_way`` the names of every row of
     any barrier that gave way (:meth:`Barrier.row_names`, each once); ``min_h_self`` (m) the
@@ -192,11 +207,22 @@ class SafetyFilter:
             start += len(b.row_names())
         n, self._m_all = len(kinematics.joint_names), start
         # buffers of one step (every result gets fresh arrays): the stacked priorities, the QP's rows
-        # (the movable ones) with their priorities and stacked indices, the boxes
+        # (the movable ones) with their priorities and stacked indices, the boxes (prepare_qp's rows
+        # LOWER, UPPER, LOW, HIGH), the QP in DAQP's layout (prepare_qp's ``stacked``; the rows' upper
+        # bounds infinite) and its views for k rows (:meth:`_qp_views`)
         self._soft_all = np.empty(start, bool)
-        self._A_qp, self._b_qp = np.empty((start, n)), np.empty(start)
+        self._A_qp = np.empty((start, n))
         self._soft_qp, self._kept = np.empty(start, bool), np.empty(start, np.intp)
-        self._lower, self._upper, self._low, self._high = np.empty((4, n))
+        self._box_rows = np.empty((4, n))
+        self._stacked = np.empty((3, n + start))
+        self._stacked[2, n:] = INF_BOUND
+        self._views: dict[int, tuple] = {}
+        self._prepare, self._integrate = BoundKernel(prepare_qp), BoundKernel(integrate)
+        # StepResult.relaxed of a step whose QP was feasible: no pair row gave way (shared, read-only)
+        self._none_relaxed = np.zeros(barrier.n_rows, bool)
+        self._none_relaxed.flags.writeable = False
+        self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
+        self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.params = params
         self.backend_name = backend
         self._qp: QPBackend = make_backend(backend)
@@ -207,10 +233,30 @@ class SafetyFilter:
         # declared such feasible problems infeasible (44 steps of one development clip)
         self._relaxed_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
         self._tracking_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
-        self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
-        self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
         self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
         self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
+
+    @property
+    def params(self) -> FilterParams:
+        """The step's parameters (frozen; their arrays are never written): setting them rebuilds the
+        per-joint constants of :func:`~services.safety.qp.box.prepare_qp`."""
+        return self._params
+
+    @params.setter
+    def params(self, params: FilterParams) -> None:
+        self._params = params
+        self._limits = limits_table(self.q_min, self.q_max, params.u_min, params.u_max, params.accel_max,
+                                    params.weights)
+
+    def _qp_views(self, k: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(A, b, (f, bounds lower, bounds upper)) of the QP with k rows: views of the buffers
+        :func:`~services.safety.qp.box.prepare_qp` writes (made once per k)."""
+        views = self._views.get(k)
+        if views is None:
+            n, stacked = self._box_rows.shape[1], self._stacked
+            views = self._views[k] = (self._A_qp[:k], stacked[1, n:n + k],
+                                      (stacked[0, :n], stacked[1, :n + k], stacked[2, :n + k]))
+        return views
 
     def reset(self, q: np.ndarray) -> None:
         """Restart integration from configuration ``q`` (e.g. the measured joint state)."""
@@ -236,10 +282,10 @@ class SafetyFilter:
         """One control step towards ``q_nom`` (n,) over ``dt`` seconds; ``dq_nom`` (n,) rad/s, the
         target's velocity, is fed forward (u_ref = dq_nom + K (q_nom − q_cbf); None: K only).
 
-        Every barrier writes its rows into the stacked A, b, soft, h (:meth:`Barrier.write_rows`), the
-        rows a velocity can move are copied into the QP's buffers in one compiled pass, u_ref and the
-        first velocity box come from one compiled call and the clip, integration and ddq from another:
-        the feasible step allocates only what it returns."""
+        Every barrier writes its rows into the stacked A, b, soft, h (:meth:`Barrier.write_rows`);
+        u_ref, the first velocity box and the rows a velocity can move, in the QP solver's layout, come
+        from one compiled call (:func:`~services.safety.qp.box.prepare_qp`) and the clip, integration
+        and ddq from another: the feasible step allocates only what it returns."""
         p = self.params
         q = self.q_cbf
         endpoints, jacobians = self.kinematics.compute(q)
@@ -250,29 +296,33 @@ class SafetyFilter:
         for barrier, start in self._starts:
             low, low_own = barrier.write_rows(q, endpoints, jacobians, gamma, phi, lookahead, accel, start, A_all, b_all,
                                               soft_all, h_all)
-            inside, low_self = min(inside, low), min(low_self, low_own)
+            if low < inside:  # min(inside, low) without the call (a NaN never replaces a value, as in min)
+                inside = low
+            if low_own < low_self:
+                low_self = low_own
         rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
-        lower, upper = self._lower, self._upper
-        u_ref, bounded, honours = reference_and_box(
-            np.asarray(q_nom, dtype=np.float64), None if dq_nom is None else np.asarray(dq_nom, dtype=np.float64),
-            p.gain, q, self.q_min, self.q_max, p.u_min, p.u_max, accel, BRAKE_SHARE, self._u_prev, dt, lower, upper,
-            self._low, self._high)
-        if bounded:
-            lower, upper = self._low, self._high
-        if self.enforce:
-            # Rows no velocity can change (a pair of a static link such as a locked thigh, a missing
-            # capsule's disabled row) hold or fail whatever u is: they are left out of the QP, where a
-            # failing one would only make it infeasible (a person touching a static link is an
-            # intrusion, reported below, not a row the robot could honour).
-            k = keep_movable(A_all, b_all, soft_all, _STATIC_ROW, 0, self._A_qp, self._b_qp, self._soft_qp, self._kept, 0)
-            A, b = self._A_qp[:k], self._b_qp[:k]
-        else:
-            A, b = A_all[:0], b_all[:0]
-        problem = QPProblem(p.weights, u_ref, A, b, lower, upper)
+        q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
+        dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
+        if q_nom.shape != q.shape or dq_nom.shape != q.shape:
+            raise ValueError(f"q_nom and dq_nom must have shape {q.shape}")
+        u_ref, boxes, u_prev = np.empty(n), self._box_rows, self._u_prev
+        bounded = accel is not None and u_prev is not None
+        dt = float(dt)
+        # With enforce, rows no velocity can change (a pair of a static link such as a locked thigh, a
+        # missing capsule's disabled row) hold or fail whatever u is: they are left out of the QP,
+        # where a failing one would only make it infeasible (a person touching a static link is an
+        # intrusion, reported below, not a row the robot could honour).
+        k, honours = self._prepare.call(q_nom, dq_nom, dq_nom is not q_nom, p.gain, q, self._limits, BRAKE_SHARE,
+                                        u_prev if bounded else q, bounded, dt, u_ref, boxes, A_all, b_all,
+                                        soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp, self._soft_qp,
+                                        self._kept, self._stacked)
+        lower, upper = (boxes[LOW], boxes[HIGH]) if bounded else (boxes[LOWER], boxes[UPPER])
+        A, b, stacked = self._qp_views(k)
+        problem = QPProblem(p.weights, u_ref, A, b, lower, upper, stacked)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s
         u = solution.u
-        relaxed = np.zeros(rows.b.shape[0], bool)
+        relaxed = self._none_relaxed
         gave_way: tuple[str, ...] = ()
         if u is not None:
             active = solution.active_rows
@@ -285,14 +335,16 @@ class SafetyFilter:
             qp_time += seconds
         if not honours:
             gave_way += (ACCEL_BOUND,)
-        # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within the limits
-        advanced = advance(u, lower, upper, q, dt, self.q_min, self.q_max, self._u_prev)
-        if advanced is None:  # not finite
+        # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within
+        # the limits, a copy of it and ddq: the rows of one fresh array (the solver's u as the kernel's type)
+        u, out = np.ascontiguousarray(u, dtype=np.float64), np.empty((4, n))
+        if self._integrate.call(u, lower, upper, q, dt, self.q_min, self.q_max, u if u_prev is None else u_prev,
+                              u_prev is not None, out):
+            u, q_next, q_result, ddq = out
+        else:  # not finite
             u, q_next, mode = np.zeros(n), q.copy(), SafetyMode.HOLD
             q_result = q_next.copy()
-            ddq = np.zeros(n) if self._u_prev is None else (u - self._u_prev) / dt
-        else:
-            u, q_next, q_result, ddq = advanced
+            ddq = np.zeros(n) if u_prev is None else (u - u_prev) / dt
         self.q_cbf = q_next
         self._u_prev = u
         intrusion = False

@@ -70,7 +70,11 @@ class Barrier(ABC):
         rows ``start`` … ``start + m − 1`` of the stacked ``A`` (M, n), ``b``, ``soft``, ``h`` (M,) of
         every barrier; returns :meth:`RowBlock.minima` of them. This default stacks
         :meth:`constraint_rows`; a barrier with a compiled kernel overrides it (the filter's step then
-        allocates nothing for its rows)."""
+        allocates nothing for its rows) and may call it through
+        :class:`~services.safety.barriers.kernel.BoundKernel`: every call passes the same types, as
+        the filter's step does (``A``, ``b``, ``h`` C-contiguous float64, ``soft`` bool, ``q``
+        and ``accel`` float64 (n,), the scalars float, ``start`` int, the forward kinematics' own
+        arrays)."""
         block = self.constraint_rows(q, endpoints, jacobians, gamma, phi, lookahead, accel)
         stop = start + block.b.shape[0]
         A[start:stop], b[start:stop], soft[start:stop], h[start:stop] = block.A, block.b, block.soft, block.h

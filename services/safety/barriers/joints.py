@@ -18,6 +18,7 @@ import numpy as np
 
 from services.safety.barriers.base import NO_DISTANCE, Barrier, RowBlock
 from services.safety.barriers.kernel import joint_rows, write_joint_block
+from services.safety.compiled import BoundKernel
 
 #: The share of a joint's acceleration bound it counts on to stop at a barrier or a joint limit (the
 #: rest is left to the other rows and joints competing for the same step).
@@ -41,6 +42,7 @@ class JointBarrier(Barrier):
         self._unbounded = np.zeros(len(joint_names))  # the kernel's accel argument without a bound (never read)
         self._A = sign[:, None] * np.eye(len(joint_names))[self.index]
         self._soft = np.zeros(len(self.index), bool)
+        self._write = BoundKernel(write_joint_block)
         self._names = tuple(f"{joint_names[j]}{'>=' if sgn > 0 else '<='}{bound:g}" for j, sgn, bound in rows)
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
@@ -57,8 +59,8 @@ class JointBarrier(Barrier):
                    soft: np.ndarray, h: np.ndarray) -> tuple[float, float]:
         """:meth:`constraint_rows` in one compiled call; joint angles are no distances: (inf, inf)."""
         bounded = accel is not None
-        write_joint_block(q, self.index, self.sign, self.bound, gamma, accel if bounded else self._unbounded, BRAKE_SHARE,
-                          bounded, self._A, start, A, b, soft, h)
+        self._write.call(q, self.index, self.sign, self.bound, gamma, accel if bounded else self._unbounded, BRAKE_SHARE,
+                         bounded, self._A, start, A, b, soft, h)
         return NO_DISTANCE
 
     def row_names(self) -> tuple[str, ...]:

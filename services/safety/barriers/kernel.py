@@ -139,7 +139,7 @@ def joint_rows(q, index, sign, bound, gamma, accel, share, bounded, h, b):  # pr
 
 
 @njit(cache=True, nogil=True)
-def _moves(A, i, tol):  # pragma: no cover - compiled
+def row_moves(A, i, tol):  # pragma: no cover - compiled
     """Row i's largest |A_ij| (NaN if any is NaN, 0 for an empty row) exceeds ``tol``."""
     largest = 0.0
     for j in range(A.shape[1]):
@@ -152,24 +152,9 @@ def _moves(A, i, tol):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def movable_mask(A, tol, out):  # pragma: no cover - compiled
-    """out_i = row i of A moves (:func:`_moves`)."""
+    """out_i = row i of A moves (:func:`row_moves`)."""
     for i in range(A.shape[0]):
-        out[i] = _moves(A, i, tol)
-
-
-@njit(cache=True, nogil=True)
-def keep_movable(A, b, soft, tol, start, A_out, b_out, soft_out, kept, k):  # pragma: no cover - compiled
-    """Append the rows of one block (A, b, soft) that move (:func:`_moves`) to the outputs from their
-    row k on, with their indices (``start`` + row in the block) in ``kept``; returns the new k."""
-    for i in range(A.shape[0]):
-        if _moves(A, i, tol):
-            for j in range(A.shape[1]):
-                A_out[k, j] = A[i, j]
-            b_out[k] = b[i]
-            soft_out[k] = soft[i]
-            kept[k] = start + i
-            k += 1
-    return k
+        out[i] = row_moves(A, i, tol)
 
 
 @njit(cache=True, nogil=True)

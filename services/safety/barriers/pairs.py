@@ -35,6 +35,7 @@ from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.kernel import (
     DISABLED_B, finish_segment_rows, masked_min, pair_rows, segment_pairs, write_segment_block,
 )
+from services.safety.compiled import BoundKernel
 from services.safety.pairs import N_ROBOT, PairSet
 from shared.geometry import EPS_NORMAL, safe_normal, segment_closest_points
 
@@ -121,6 +122,7 @@ class SegmentRowWriter:
         self.pairs = np.ascontiguousarray(np.stack([first, second]), dtype=np.int64)
         m = self.pairs.shape[1]
         self._st, self._normal = np.empty((2, m)), np.empty((m, 3))
+        self._write = BoundKernel(write_segment_block)
         # numba compiles on first use: the kernel of touching segments, which only such a rare step
         # calls, is compiled now for the types of write's arguments (no row written), not in a control tick
         finish_segment_rows(self._normal, self._st, np.zeros((0, 2, 3, 0)), velocities, self.pairs[:, :0], flags, 0, 0.0,
@@ -133,9 +135,9 @@ class SegmentRowWriter:
         of ``A``, ``b``, ``soft``, ``h`` and their distances into ``distance`` (m,); returns
         :meth:`RowBlock.minima`."""
         pairs, flags, st, normal = self.pairs, self.flags, self._st, self._normal
-        need, low, low_self = write_segment_block(endpoints, self.segments, self.radii, jacobians, self.velocities,
-                                                  pairs, flags, gamma, phi, lookahead, distance, st, normal, start,
-                                                  A, b, soft, h)
+        need, low, low_self = self._write.call(endpoints, self.segments, self.radii, jacobians, self.velocities,
+                                               pairs, flags, gamma, phi, lookahead, distance, st, normal, start,
+                                               A, b, soft, h)
         if need:  # segments touching or crossing: the fallback normals, then the rows
             fallback_normals(self.segments, pairs[0], pairs[1], distance, normal)
             low, low_self = finish_segment_rows(normal, st, jacobians, self.velocities, pairs, flags, endpoints.shape[0],

@@ -10,6 +10,10 @@ from enum import Enum
 import numpy as np
 
 
+#: a bound of this magnitude or more is infinite (DAQP's convention; a row A_i u ≥ b_i's upper bound)
+INF_BOUND = 1e30
+
+
 class QPStatus(str, Enum):
     OPTIMAL = "optimal"
     INFEASIBLE = "infeasible"
@@ -20,7 +24,10 @@ class QPStatus(str, Enum):
 class QPProblem:
     """min ½ (u − u_ref)ᵀ diag(w) (u − u_ref)  s.t.  A u ≥ b,  lower ≤ u ≤ upper.
 
-    Shapes: ``w``, ``u_ref``, ``lower``, ``upper`` (n,); ``A`` (m, n); ``b`` (m,).
+    Shapes: ``w``, ``u_ref``, ``lower``, ``upper`` (n,); ``A`` (m, n); ``b`` (m,). ``stacked``
+    (optional, a producer that already has them): (f, bounds_lower, bounds_upper) = (−W u_ref (n,),
+    [lower; b] (n + m,), [upper; INF_BOUND] (n + m,)), the same values in the layout a dense solver
+    with simple bounds first takes (DAQP uses them as they are; the other backends ignore them).
     """
 
     w: np.ndarray
@@ -29,6 +36,7 @@ class QPProblem:
     b: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
+    stacked: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def n(self) -> int:

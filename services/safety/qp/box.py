@@ -1,7 +1,8 @@
-"""The QP's box and the integration step, compiled (numba): a step's inputs (u_ref and its first
-box) in one call and its end (clip, integration, ddq) in another, instead of ~16 numpy calls on
-8-element arrays (and ~40 for the acceleration bound), the Python overhead that dominated the
-safety step (the profile in docs/benchmarks.md).
+"""The QP's box and the integration step, compiled (numba): a step's QP inputs (u_ref, its first
+box, the rows a velocity can move, all in DAQP's layout: :func:`prepare_qp`) in one call and its end
+(clip, integration, ddq: :func:`integrate`) in another, instead of ~16 numpy calls on 8-element arrays (and ~40 for
+the acceleration bound), the Python overhead that dominated the safety step (the profile in
+docs/benchmarks.md).
 
 Element by element the same IEEE operations as the numpy expressions they replace, so results
 are bit-identical:
@@ -15,7 +16,7 @@ and for an acceleration bound a (rad/s², braking share β; h = β a Δt / 2):
     lower ← min(max(lower, h − √(2 β a max(q − q_min, 0) + h²)), upper)
     [lo, hi] = clip(u_prev ∓ f a Δt, lower, upper)
 
-and u_ref = K (q_nom − q) (+ q̇_nom), ddq = (u − u_prev)/Δt.
+and u_ref = K (q_nom − q) (+ q̇_nom), the QP's linear term f = −W u_ref, ddq = (u − u_prev)/Δt.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("XDG_CACHE_HOME
 
 import numpy as np  # noqa: E402
 from numba import njit  # noqa: E402
+
+from services.safety.barriers.kernel import row_moves  # noqa: E402
 
 
 @njit(cache=True, nogil=True)
@@ -82,57 +85,75 @@ def _bounded(q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, fa
     return _reach(u_prev, accel, factor, dt, lower, upper, low, high)
 
 
+#: rows of the filter's constant per-joint table (:func:`limits_table`)
+Q_MIN, Q_MAX, U_MIN, U_MAX, ACCEL, WEIGHT = range(6)
+#: rows of the box buffer (4, n) :func:`prepare_qp` writes: the velocity box, the acceleration-bounded box
+LOWER, UPPER, LOW, HIGH = range(4)
+
+
+def limits_table(q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray,
+                 accel: np.ndarray | None, weights: np.ndarray) -> np.ndarray:
+    """(6, n) the per-joint constants of a step, rows :data:`Q_MIN` … :data:`WEIGHT`: the joint limits,
+    the velocity bounds (u_min None: −u_max, the same values as negating in the kernel), the
+    acceleration bound (None: 0, never read) and the QP weights w."""
+    return np.ascontiguousarray(np.stack([q_min, q_max, -u_max if u_min is None else u_min, u_max,
+                                          np.zeros_like(u_max) if accel is None else accel, weights]), dtype=np.float64)
+
+
 @njit(cache=True, nogil=True)
-def _reference_box(q_nom, dq_nom, feed, gain, q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, bounded,
-                   dt, u_ref, lower, upper, low, high):  # pragma: no cover - compiled
-    for j in range(q.shape[0]):
+def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt, u_ref, boxes, A_all, b_all, soft_all,
+               tol, enforce, A_qp, soft_qp, kept, stacked):  # pragma: no cover - compiled
+    """A step's QP inputs in one call; returns (k, within).
+
+    ``u_ref`` ← ``gain`` (q_nom − q) (+ ``dq_nom`` if ``feed``); ``boxes`` (4, n) rows LOWER, UPPER ←
+    :func:`velocity_box` and, if ``bounded``, rows LOW, HIGH and within ← :func:`bounded_box` at
+    factor 1 (``limits``: :func:`limits_table`; within True when not bounded). With ``enforce``, the
+    k stacked rows (``A_all``, ``b_all``, ``soft_all``) a velocity can move (their largest |A_ij| >
+    ``tol``, ``services.safety.barriers.kernel``) are copied in order into ``A_qp``, ``soft_qp`` and
+    their indices into ``kept`` (k = 0 without). ``stacked`` (3, n + M) is the QP in DAQP's layout:
+    row 0 [:n] ← f = −W u_ref, row 1 [:n + k] ← [box lower; b of the kept rows], row 2 [:n] ← box
+    upper (the box used: LOW/HIGH if bounded, else LOWER/UPPER; row 2 [n:] holds ``INF_BOUND``, the caller's)."""
+    n = q.shape[0]
+    for j in range(n):
         u = gain * (q_nom[j] - q[j])
         u_ref[j] = u + dq_nom[j] if feed else u
+        stacked[0, j] = -limits[WEIGHT, j] * u_ref[j]
+    lower, upper = boxes[LOWER], boxes[UPPER]
+    within = True
     if bounded:
-        return _bounded(q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, 1.0, dt, lower, upper, low, high)
-    _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper)
-    return True
+        within = _bounded(q, limits[Q_MIN], limits[Q_MAX], limits[U_MIN], limits[U_MAX], False, limits[ACCEL], share,
+                          u_prev, 1.0, dt, lower, upper, boxes[LOW], boxes[HIGH])
+        lower, upper = boxes[LOW], boxes[HIGH]
+    else:
+        _box(q, limits[Q_MIN], limits[Q_MAX], limits[U_MIN], limits[U_MAX], False, dt, lower, upper)
+    for j in range(n):
+        stacked[1, j] = lower[j]
+        stacked[2, j] = upper[j]
+    k = 0
+    if enforce:
+        for i in range(A_all.shape[0]):
+            if row_moves(A_all, i, tol):
+                for j in range(n):
+                    A_qp[k, j] = A_all[i, j]
+                stacked[1, n + k] = b_all[i]
+                soft_qp[k] = soft_all[i]
+                kept[k] = i
+                k += 1
+    return k, within
 
 
 @njit(cache=True, nogil=True)
-def _advance(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, u_out, q_out, q_copy, ddq):  # pragma: no cover - compiled
+def integrate(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, out):  # pragma: no cover - compiled
+    """The integration step and the command's acceleration: ``out`` (4, n) rows ← u clipped to
+    [``lower``, ``upper``], q⁺ = q + dt·u clipped to the joint limits, a copy of q⁺, ddq = (u −
+    u_prev)/dt (zero unless ``has_prev``); False (``out`` partly written) when q⁺ is not finite."""
+    u_out, q_out = out[0], out[1]
     if not _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):
         return False
     for j in range(q.shape[0]):
-        q_copy[j] = q_out[j]
-        ddq[j] = (u_out[j] - u_prev[j]) / dt if has_prev else 0.0
+        out[2, j] = q_out[j]
+        out[3, j] = (u_out[j] - u_prev[j]) / dt if has_prev else 0.0
     return True
-
-
-def reference_and_box(q_nom: np.ndarray, dq_nom: np.ndarray | None, gain: float, q: np.ndarray, q_min: np.ndarray,
-                      q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray, accel: np.ndarray | None,
-                      share: float, u_prev: np.ndarray | None, dt: float, lower: np.ndarray, upper: np.ndarray,
-                      low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, bool, bool]:
-    """A step's inputs in one compiled call: (u_ref, bounded, within).
-
-    u_ref = ``gain`` (q_nom − q) (+ ``dq_nom``; None: none), a fresh array. Without an acceleration
-    bound (``accel`` or ``u_prev`` None; bounded False) ``lower``, ``upper`` ← :func:`velocity_box`
-    and within is True; with one, ``lower``, ``upper``, ``low``, ``high``, within ← :func:`bounded_box`
-    at factor 1 (the same values)."""
-    u_ref = np.empty(q.shape[0])
-    bounded = accel is not None and u_prev is not None
-    within = _reference_box(q_nom, u_max if dq_nom is None else dq_nom, dq_nom is not None, gain, q, q_min, q_max,
-                            u_max if u_min is None else u_min, u_max, u_min is None, accel if bounded else u_max, share,
-                            u_prev if bounded else u_max, bounded, dt, u_ref, lower, upper, low, high)
-    return u_ref, bounded, within
-
-
-def advance(u: np.ndarray, lower: np.ndarray, upper: np.ndarray, q: np.ndarray, dt: float, q_min: np.ndarray,
-            q_max: np.ndarray, u_prev: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """The integration step and the command's acceleration in one compiled call: (u clipped to [lower,
-    upper], q⁺ = q + dt·u clipped to the joint limits, a copy of q⁺, ddq = (u − u_prev)/dt, zero without
-    ``u_prev``), fresh arrays; None when q⁺ is not finite."""
-    n = q.shape[0]
-    u_out, q_out, q_copy, ddq = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    if not _advance(u, lower, upper, q, dt, q_min, q_max, u if u_prev is None else u_prev, u_prev is not None, u_out,
-                    q_out, q_copy, ddq):
-        return None
-    return u_out, q_out, q_copy, ddq
 
 
 def velocity_box(q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray,

@@ -13,9 +13,9 @@ import daqp  # noqa: E402
 import numpy as np  # noqa: E402
 from numba import njit  # noqa: E402
 
-from services.safety.qp.base import QPBackend, QPProblem, QPSolution, QPStatus  # noqa: E402
+from services.safety.compiled import BoundKernel  # noqa: E402
+from services.safety.qp.base import INF_BOUND, QPBackend, QPProblem, QPSolution, QPStatus  # noqa: E402
 
-_INF = 1e30  # DAQP treats |bound| ≥ 1e30 as infinite
 #: DAQP's constraint flags (``sense``; include/constants.h): bit 1 = in the working set (active),
 #: bit 2 = active at its *lower* bound (clear: at its upper bound)
 DAQP_ACTIVE = 1
@@ -89,7 +89,7 @@ class DaqpBackend(QPBackend):
     name = "daqp"
 
     def __init__(self, iter_limit: int = 1000, primal_tol: float = 1e-9, warm_start: bool = True) -> None:
-        self._settings = {"iter_limit": iter_limit, "primal_tol": primal_tol}
+        self._iter_limit, self._primal_tol = iter_limit, primal_tol  # passed as keywords (no ** dict per solve)
         self.warm_start = warm_start
         self._warm = False  # _sense holds a usable active set
         self._w: np.ndarray | None = None
@@ -102,6 +102,14 @@ class DaqpBackend(QPBackend):
         self._lower = np.empty(0)
         self._sense = np.zeros(0, dtype=np.intc)
         self._cold = np.zeros(0, dtype=np.intc)
+        # _settle of a stacked problem (QPProblem.stacked: its producer's own buffers, the same types
+        # at every solve) through its entry point; other problems through numba's dispatcher
+        self._settle_stacked = BoundKernel(_settle)
+
+    @property
+    def _settings(self) -> dict[str, float]:
+        """DAQP's settings, as the keywords every solve passes."""
+        return {"iter_limit": self._iter_limit, "primal_tol": self._primal_tol}
 
     def _buffers(self, problem: QPProblem, shape: tuple[int, int]) -> None:
         """(Re)build H only when the weights change (the same array object as last time counts as
@@ -117,7 +125,7 @@ class DaqpBackend(QPBackend):
         if shape != self._shape:
             n, m = shape
             self._f = np.empty(n)
-            self._upper = np.full(n + m, _INF)
+            self._upper = np.full(n + m, INF_BOUND)
             self._lower = np.empty(n + m)
             self._sense = np.zeros(n + m, dtype=np.intc)
             self._cold = np.zeros(n + m, dtype=np.intc)
@@ -129,18 +137,24 @@ class DaqpBackend(QPBackend):
         shape = (problem.u_ref.shape[0], problem.b.shape[0])
         if problem.w is not self._w_src or shape != self._shape:
             self._buffers(problem, shape)
-        H, f, upper, lower = self._H, self._f, self._upper, self._lower
-        _pack(self._neg_w, problem.u_ref, problem.lower, problem.upper, problem.b, f, upper, lower)
+        H = self._H
+        if problem.stacked is None:
+            f, upper, lower = self._f, self._upper, self._lower
+            _pack(self._neg_w, problem.u_ref, problem.lower, problem.upper, problem.b, f, upper, lower)
+        else:  # the producer's own f and bounds in DAQP's layout (QPProblem.stacked)
+            f, lower, upper = problem.stacked
         warm = self._warm and self.warm_start
         x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._sense if warm else self._cold,
-                                          **self._settings)
+                                          iter_limit=self._iter_limit, primal_tol=self._primal_tol)
         iterations = info["iterations"]
         if warm and exitflag not in (1, 2):  # e.g. the old working set is overdetermined now
-            x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._cold, **self._settings)
+            x, _, exitflag, info = daqp.solve(H, f, problem.A, upper, lower, self._cold, iter_limit=self._iter_limit,
+                                              primal_tol=self._primal_tol)
             iterations += info["iterations"]
         if exitflag in (1, 2):
             slack = np.empty(problem.m)
-            active = _settle(info["lam"], _DUAL_TOL, self._sense, problem.A, problem.b, x, self.active_tol, slack)
+            settle = _settle if problem.stacked is None else self._settle_stacked.call
+            active = settle(info["lam"], _DUAL_TOL, self._sense, problem.A, problem.b, x, self.active_tol, slack)
             self._warm = True
             seconds = time.perf_counter() - start
             if active < 0:
