@@ -189,6 +189,13 @@ class SafetyConfig(_Section):
         "(it also takes the arms' reaction torques): 10. The bound gives way (widened step by step, reported as "
         "'accel_max') only where no u within it keeps every hard row; null: no bound (the paper)",
     )
+    self_margin: float = Field(
+        default=0.002, ge=0, le=0.05,
+        description="the hard distance rows (self pairs, static pairs) aim this far (m) beyond φ. Rows linearised "
+        "once a step drift into a curved boundary while the robot slides along it, to a depth of ≈ κ v² Δt / (2γ) "
+        "(κ the boundary's curvature, v the sliding speed): 2 mm at 1 m/s along the thinnest robot capsule (r 0.05 m, "
+        "κ = 20 /m) at Δt = 2 ms and γ = 10. h is still reported against φ; 0: none (the paper)",
+    )
     feedforward: bool = Field(
         default=True,
         description="u_ref = q̇_nom + K (q_nom − q_cbf) with q̇_nom the retargeted θ̇ of the human state (no lag "

@@ -170,7 +170,7 @@ def test_health_and_config_read(api: ApiServer) -> None:
     assert body["joint_names"][0] == "waist_roll_joint" and len(body["capsule_names"]) == 7
     safety = body["safety"]
     # the names, mapped onto the configuration explicitly
-    assert set(safety) == {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "dt", "enabled_pair_groups", "capsule_radii", "human_velocity_term",
+    assert set(safety) == {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "dt", "enabled_pair_groups", "capsule_radii", "human_velocity_term",
                            "geometry", "sphere_k"}
     assert safety["dt"] == pytest.approx(1.0 / body["config"]["safety"]["rate_hz"])
     assert safety["k"] == body["config"]["safety"]["gain"] and safety["w"] == body["config"]["safety"]["weights"]
@@ -231,6 +231,8 @@ def test_writes_need_the_token(api: ApiServer, method: str, path: str, body: dic
         ("/api/config/safety", {"u_min": [0.5] * 8}, "u_min"),
         ("/api/config/safety", {"u_max": [-1.0] * 8}, "u_max"),
         ("/api/config/safety", {"accel_max": [0.0] * 8}, "accel_max"),
+        ("/api/config/safety", {"self_margin": -0.001}, "self_margin"),
+        ("/api/config/safety", {"self_margin": 0.5}, "self_margin"),
         ("/api/config/safety", {"dt": 0}, "dt"),
         ("/api/config/safety", {"dt": 2.0}, "dt"),
         ("/api/config/safety", {"enabled_pair_groups": ["elbows"]}, "enabled_pair_groups"),
@@ -355,6 +357,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
         "u_min": [-1.0, -1.0, -3.0, -3.0, -3.0, -3.0, -3.0, -3.0],
         "u_max": [1.5, 1.5, 3.5, 3.5, 3.5, 3.5, 3.5, 3.5],
         "accel_max": [5.0, 5.0, 40.0, 40.0, 100.0, 40.0, 40.0, 100.0],
+        "self_margin": 0.004,
         "enabled_pair_groups": ["human", "self_arms", "human"],
         "capsule_radii": {"robot": {"left_forearm": 0.061, "torso": 0.12}, "human": {"torso": 0.16, "forearm": 0.055}},
         "human_velocity_term": False,
@@ -363,6 +366,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
     conf = api.http.get("/api/config").json()["config"]
     assert conf["safety"]["weights"] == patch["w"] and conf["safety"]["u_min"] == patch["u_min"]
     assert conf["safety"]["u_max"] == patch["u_max"] and conf["safety"]["accel_max"] == patch["accel_max"]
+    assert conf["safety"]["self_margin"] == 0.004
     assert conf["safety"]["enabled_pair_groups"] == ["self_arms", "human"]
     assert conf["safety"]["capsule_radii"] == {"left_forearm": 0.061, "torso": 0.12}
     assert conf["human"]["torso_radius"] == 0.16 and conf["human"]["forearm_radius"] == 0.055

@@ -76,6 +76,7 @@ def test_console_loads_with_the_current_parameters(page, browser_context, consol
     sync_api.expect(page.locator("#robot-id")).to_have_text("g1")
     assert float(page.locator("#safety-form input[name=gamma]").input_value()) == safety["gamma"]
     assert float(page.locator("#safety-form input[name=dt]").input_value()) == pytest.approx(safety["dt"])
+    assert float(page.locator("#safety-form input[name=self_margin]").input_value()) == safety["self_margin"]
     assert page.locator("#safety-vectors input").count() == 4 * 8  # w, u_min, u_max, accel_max
     accel = [float(page.locator(f"#safety-form input[name='accel_max.{i}']").input_value()) for i in range(8)]
     assert accel == safety["accel_max"]

@@ -90,8 +90,9 @@ def test_random_intrusions_keep_self_rows_and_never_close_in_on_the_person(backe
 
 def test_the_relaxed_problem_is_feasible_by_construction_and_least_violating() -> None:
     """On random states: u = 0, σ = max(b, 0) satisfies every constraint; the filter's total
-    violation equals the LP's minimum."""
-    p = pipeline_for()
+    violation equals the LP's minimum (without the self margin, which only shifts some rows' b:
+    :func:`test_self_rows_aim_the_margin_beyond_phi`)."""
+    p = pipeline_for(self_margin=0.0)
     rng = np.random.default_rng(61)
     params = p.filter.params
     checked = 0
@@ -113,6 +114,34 @@ def test_the_relaxed_problem_is_feasible_by_construction_and_least_violating() -
         assert float(cost @ violation) <= best + 1e-3 * max(1.0, best), (cost @ violation, best)  # ε-regularised
         checked += 1
     assert checked >= 10
+
+
+def _slide_into_the_torso(margin: float) -> tuple[float, set[str]]:
+    """The left arm driven through the torso (imitation pulling across the body) for 2 s from home,
+    no person: the smallest self h the filter held (m) and every name that gave way."""
+    p = pipeline_for(self_margin=margin)
+    alone_at(p, p.kinematics.q_home)
+    q_nom = p.kinematics.q_home.copy()
+    names = p.kinematics.joint_names
+    q_nom[names.index("left_shoulder_roll_joint")] = -1.2
+    q_nom[names.index("left_shoulder_pitch_joint")] = -0.6
+    q_nom[names.index("left_elbow_joint")] = 0.0
+    lowest, gave = np.inf, set()
+    for _ in range(1000):
+        result = p.filter.step(q_nom, DT)
+        lowest = min(lowest, result.min_h_self)
+        gave |= set(result.gave_way)
+    return lowest, gave
+
+
+def test_self_rows_aim_the_margin_beyond_phi() -> None:
+    """``safety.self_margin`` ε: an arm pressed into the torso stops with its self rows about ε
+    beyond φ (h reported against φ stays ≥ 0, a sampled slide along the boundary no longer dips
+    below it); rows inside the band are pushed out but not reported as giving way."""
+    with_margin, gave = _slide_into_the_torso(0.002)
+    without, _ = _slide_into_the_torso(0.0)
+    assert with_margin >= 0.002 and abs((with_margin - without) - 0.002) < 5e-4, (with_margin, without)
+    assert not {name for name in gave if "|" in name and "human" not in name}, gave
 
 
 def test_an_already_violated_self_row_is_softened_not_dropped() -> None:

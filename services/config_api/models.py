@@ -73,6 +73,7 @@ SAFETY_FIELDS: dict[str, str] = {
     "u_min": "safety.u_min",
     "u_max": "safety.u_max",
     "accel_max": "safety.accel_max",
+    "self_margin": "safety.self_margin",
     "dt": "safety.rate_hz",  # dt = 1 / rate_hz
     "enabled_pair_groups": "safety.enabled_pair_groups",
     "capsule_radii.robot": "safety.capsule_radii",
@@ -93,7 +94,8 @@ RETARGET_FIELDS: dict[str, str] = {
     "mirror": "retargeting.mirror",
 }
 #: Safety request fields whose value goes into the configuration unchanged.
-_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "human_velocity_term", "sphere_k"}
+_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_velocity_term",
+                  "sphere_k"}
 #: Configuration field → request field, to name the request's field in errors found on the whole config.
 REQUEST_FIELD: dict[str, str] = {path: name for name, path in (SAFETY_FIELDS | RETARGET_FIELDS).items()}
 
@@ -144,6 +146,9 @@ class SafetyPatch(_Patch):
     u_max: _vector(gt=0, le=50) = Field(None, description="upper velocity bound per joint (rad/s, > 0)")
     accel_max: _vector(gt=0, le=10000) | None = Field(
         None, description="|u − u_prev|/Δt bound per joint (rad/s², > 0): what the motors can follow; null: none"
+    )
+    self_margin: _like(SafetyConfig, "self_margin") = Field(
+        None, description="how far beyond φ the self-collision rows aim (m): their linearisation's drift along a curved boundary"
     )
     dt: Annotated[float, Strict(), Field(ge=DT_MIN, le=DT_MAX)] = Field(None, description="control period Δt (s) = 1 / control rate")
     enabled_pair_groups: set[PairGroup] = Field(None, description="pair groups whose CBF rows are enforced")
@@ -214,6 +219,7 @@ class SafetyParams(_View):
     u_min: list[float] | None
     u_max: list[float]
     accel_max: list[float] | None
+    self_margin: float
     dt: float
     enabled_pair_groups: list[PairGroup]
     capsule_radii: CapsuleRadii
@@ -226,7 +232,7 @@ class SafetyParams(_View):
         s, h = conf.safety, conf.human
         return cls(
             gamma=s.gamma, phi=s.phi, k=s.gain, w=s.weights, u_min=s.u_min, u_max=s.u_max, accel_max=s.accel_max,
-            dt=1.0 / s.rate_hz,
+            self_margin=s.self_margin, dt=1.0 / s.rate_hz,
             enabled_pair_groups=s.enabled_pair_groups,
             capsule_radii=CapsuleRadii(
                 robot=s.capsule_radii,

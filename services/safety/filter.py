@@ -10,6 +10,17 @@ as the static capsules of :mod:`~services.safety.barriers.static`), each row har
 u_lo/u_hi are the velocity bounds intersected with the joint limits reachable in one step; u* is
 clipped to them whatever the solver returns, so |q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly.
 
+**Self margin.** The hard distance rows (self pairs, static pairs: every hard row of a barrier that
+:attr:`~services.safety.barriers.base.Barrier.measures_distance`) aim ε = ``self_margin`` beyond φ:
+their b is −γ (h − ε) instead of −γ h. The rows are linearised once a step: a robot sliding along
+a curved boundary (h ≈ 0, A_i u ≈ 0) gains ½ κ v² Δt² of depth a step that the next step's row
+only corrects at the rate γ, a steady depth of ≈ κ v² Δt / (2γ) (κ the boundary's curvature, v the
+sliding speed): 2 mm at 1 m/s along the thinnest robot capsule (κ = 1/0.05 m) at Δt = 2 ms and
+γ = 10; the default ε = 2 mm keeps h ≥ 0 there. A row inside the margin (0 ≤ h < ε) has b > 0 and
+is treated as the relaxation treats a violated one (below): it pushes out when it can, and may be
+softened at cost ``relax_penalty``, never below its floor. h itself (reported, monitored) stays
+measured against φ.
+
 **Acceleration bound.** With ``accel_max`` a (rad/s²) the box is narrowed so that every joint
 can still stop at its limit decelerating at a, and intersected with [u_prev − aΔt, u_prev + aΔt]
 (u_prev: the previous step's u*), so the command changes speed no
@@ -130,10 +141,11 @@ class FilterParams:
     u_min: np.ndarray | None = None  # lower velocity bound (n,); None: −u_max
     human_lookahead_s: float = 0.0  # T of the human velocity term (s; see barrier.py)
     accel_max: np.ndarray | None = None  # |u − u_prev|/Δt bound (n,) rad/s²; None: none
+    self_margin: float = 0.0  # m the hard distance rows aim beyond φ (module docstring)
 
     def __post_init__(self) -> None:
         """Scalars as float, arrays as contiguous float64 (the compiled step's bound argument types)."""
-        for name in ("gamma", "phi", "gain", "relax_penalty", "human_lookahead_s"):
+        for name in ("gamma", "phi", "gain", "relax_penalty", "human_lookahead_s", "self_margin"):
             object.__setattr__(self, name, float(getattr(self, name)))
         for name in ("weights", "u_max", "u_min", "accel_max"):
             value = getattr(self, name)
@@ -152,6 +164,7 @@ class FilterParams:
             u_min=None if safety.u_min is None else np.asarray(safety.u_min, dtype=np.float64),
             human_lookahead_s=safety.human_lookahead_s,
             accel_max=None if safety.accel_max is None else np.asarray(safety.accel_max, dtype=np.float64),
+            self_margin=safety.self_margin,
         )
 
 
@@ -235,6 +248,10 @@ class SafetyFilter:
         self._tracking_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
         self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
         self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
+        #: (M,) bool: the stacked hard distance rows (self and static pairs), which aim self_margin beyond φ
+        self._self_rows = np.concatenate([
+            ~block.soft.astype(bool) if barrier.measures_distance else np.zeros(block.b.shape[0], bool)
+            for barrier, block in zip(self.barriers, self.blocks_at(self.q_cbf))])
 
     @property
     def params(self) -> FilterParams:
@@ -301,6 +318,10 @@ class SafetyFilter:
             if low_own < low_self:
                 low_self = low_own
         rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
+        if p.self_margin > 0.0:  # the hard distance rows aim self_margin beyond φ (module docstring)
+            b_all[self._self_rows] += gamma * p.self_margin
+            if not np.shares_memory(rows.b, b_all):  # a barrier that stacked copies: its reported rows too
+                rows.b[self._self_rows[: rows.b.shape[0]]] += gamma * p.self_margin
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
         if q_nom.shape != q.shape or dq_nom.shape != q.shape:
@@ -362,14 +383,15 @@ class SafetyFilter:
         upper), whether it honours the acceleration bound); u None and mode HOLD when no box works.
         ``soft`` and ``kept`` (their indices among all the stacked rows) of ``problem``'s rows."""
         A, b = problem.A, problem.b
+        margin = self._self_rows[kept] * (self.params.gamma * self.params.self_margin)  # each row's b shift
         seconds = 0.0
         for lower, upper, honours in self._boxes(q, dt):  # the acceleration bound, widened, then none
             problem = QPProblem(w=problem.w, u_ref=problem.u_ref, A=A, b=b, lower=lower, upper=upper)
-            u, slack, spent = self._relax(problem, soft)
+            u, slack, spent = self._relax(problem, soft, margin)
             seconds += spent
             if u is not None:
                 gave = np.zeros(len(self.row_names), bool)
-                gave[kept] = slack > RELAXED_TOL
+                gave[kept] = slack > RELAXED_TOL + margin  # within the self margin is no giving way
                 names = tuple(dict.fromkeys(self.row_names[i] for i in np.flatnonzero(gave)))
                 active = int(np.count_nonzero(A @ u - b <= 1e-6))
                 return u, SafetyMode.RELAXED, active, gave[:n_pair], names, seconds, lower, upper, honours
@@ -412,17 +434,21 @@ class SafetyFilter:
             yield low, high, factor == 1.0 and within
         yield lower, upper, False
 
-    def _relax(self, problem: QPProblem, soft: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, float]:
+    def _relax(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray) -> tuple[np.ndarray | None, np.ndarray,
+                                                                                        float]:
         """The lexicographic relaxed solve (module docstring): (u or None, slacks (m,), seconds).
 
-        Row i may fall to its floor f_i = min(b_i, 0) (a soft row or a violated one, b_i > 0:
-        min(b_i, 0, A_i ū), ū the box's point nearest rest): σ_i ∈ [0, b_i − f_i]. Only rows with
-        b_i > f_i get a slack variable: a hard row that holds (b_i ≤ 0) has none.
+        With b⁰ = b − ``margin`` (m,) (the row's own bound without the self margin), row i may fall to
+        its floor f_i = min(b⁰_i, 0) (a soft row or a violated one, b⁰_i > 0: min(b⁰_i, 0, A_i ū), ū
+        the box's point nearest rest): σ_i ∈ [0, b_i − f_i]. Only rows with b_i > f_i get a slack
+        variable: a hard row that holds even with its margin (b_i ≤ 0) has none, one inside its
+        margin only the margin's.
         """
         n, m = problem.n, problem.m
-        floor = np.minimum(problem.b, 0.0)
+        own = problem.b - margin
+        floor = np.minimum(own, 0.0)
         brake = np.clip(0.0, problem.lower, problem.upper)  # the box's point nearest rest: 0 in a velocity box
-        give = soft | (problem.b > 0.0)
+        give = soft | (own > 0.0)
         floor[give] = np.minimum(floor[give], problem.A[give] @ brake)
         slack_cap = problem.b - floor
         loose = np.flatnonzero(slack_cap > 0.0)

@@ -53,6 +53,9 @@ class Barrier(ABC):
 
     #: The barrier kind (``safety.geometry`` names for pair barriers, ``joint`` for joint barriers).
     name: ClassVar[str]
+    #: Whether h is a distance between surfaces (m): the hard ones then aim ``safety.self_margin``
+    #: beyond φ (:mod:`services.safety.filter`); False for rows on joint angles.
+    measures_distance: ClassVar[bool] = True
 
     @abstractmethod
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,

@@ -29,6 +29,7 @@ class JointBarrier(Barrier):
     """Rows keeping joints inside the robot description's barrier bounds (rad), all hard."""
 
     name = "joint"
+    measures_distance = False
 
     def __init__(self, bounds: Mapping[str, tuple[float | None, float | None]], joint_names: tuple[str, ...]) -> None:
         rows = []
