@@ -252,6 +252,8 @@ class SafetyFilter:
         self._self_rows = np.concatenate([
             ~block.soft.astype(bool) if barrier.measures_distance else np.zeros(block.b.shape[0], bool)
             for barrier, block in zip(self.barriers, self.blocks_at(self.q_cbf))])
+        self._shift_for: FilterParams | None = None  # the parameters _shift was computed for
+        self._shift = np.zeros(self._m_all)
 
     @property
     def params(self) -> FilterParams:
@@ -319,9 +321,10 @@ class SafetyFilter:
                 low_self = low_own
         rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
         if p.self_margin > 0.0:  # the hard distance rows aim self_margin beyond φ (module docstring)
-            b_all[self._self_rows] += gamma * p.self_margin
+            shift = self._margin_shift(p)
+            np.add(b_all, shift, out=b_all)
             if not np.shares_memory(rows.b, b_all):  # a barrier that stacked copies: its reported rows too
-                rows.b[self._self_rows[: rows.b.shape[0]]] += gamma * p.self_margin
+                rows.b += shift[: rows.b.shape[0]]
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
         if q_nom.shape != q.shape or dq_nom.shape != q.shape:
@@ -375,6 +378,14 @@ class SafetyFilter:
         return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
                           gave_way, None if low_self == math.inf else low_self, ddq)
 
+    def _margin_shift(self, params: FilterParams) -> np.ndarray:
+        """(M,) γ ε on the stacked hard distance rows, 0 elsewhere: their b shift for ``params``
+        (computed again only when the parameters are replaced)."""
+        if self._shift_for is not params:
+            self._shift = self._self_rows * (params.gamma * params.self_margin)
+            self._shift_for = params
+        return self._shift
+
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
                       n_pair: int) -> tuple:
         """The step when the plain QP has no solution: the relaxed solve (:meth:`_relax`) in every box
@@ -383,7 +394,7 @@ class SafetyFilter:
         upper), whether it honours the acceleration bound); u None and mode HOLD when no box works.
         ``soft`` and ``kept`` (their indices among all the stacked rows) of ``problem``'s rows."""
         A, b = problem.A, problem.b
-        margin = self._self_rows[kept] * (self.params.gamma * self.params.self_margin)  # each row's b shift
+        margin = self._margin_shift(self.params)[kept]  # each row's b shift
         seconds = 0.0
         for lower, upper, honours in self._boxes(q, dt):  # the acceleration bound, widened, then none
             problem = QPProblem(w=problem.w, u_ref=problem.u_ref, A=A, b=b, lower=lower, upper=upper)
