@@ -172,7 +172,7 @@ class SimRobot:
             imitation, held = self.feedforward_torque(ddq, dq)
             ctrl += self._inv_kp * imitation
             self.data.ctrl[self._held] = self._ctrl_home[self._held] + self._held_inv_kp * held
-        self._ctrl_end, self._dq_ref, self._lead_left = ctrl, dq, lead_s
+        self._ctrl_end, self._dq_ref, self._lead_left = ctrl, dq.copy(), lead_s
         self.data.ctrl[self._act] = ctrl - lead_s * dq
         return target
 
