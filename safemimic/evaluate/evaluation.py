@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from safemimic.evaluate.episode import Episode, run_episode
-from safemimic.evaluate.metrics import free_steps, input_metrics, run_metrics, write_metrics
+from safemimic.evaluate.metrics import free_steps, input_metrics, run_metrics, target_directions, write_metrics
 from safemimic.evaluate.person import CameraModel, HumanTrack, TruePerson, perceive, true_person
 from safemimic.evaluate.source import EvaluationInput, open_input
 from services.safety.assembly import make_retargeter
@@ -43,9 +43,10 @@ class Evaluation:
         """The content of ``metrics.json``."""
         free = free_steps(self.cbf)
         phi, mirror = self.conf.safety.phi, self.conf.retargeting.mirror
+        at_target = target_directions(self.person, mirror)
         return {
-            "cbf": run_metrics(self.cbf, free, self.person, phi, mirror),
-            "nominal": run_metrics(self.nominal, free, self.person, phi, mirror),
+            "cbf": run_metrics(self.cbf, free, self.person, phi, mirror, at_target),
+            "nominal": run_metrics(self.nominal, free, self.person, phi, mirror, at_target),
             "input": input_metrics(self.conf, self.source, self.human, self.cbf, self.placement, self.camera),
         }
 

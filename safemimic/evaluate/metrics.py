@@ -114,9 +114,12 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
     }
 
 
-def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, mirror: bool) -> dict[str, Any]:
+def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, mirror: bool,
+                directions_at_target: np.ndarray) -> dict[str, Any]:
     """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by the ``*_free`` keys;
-    ``person``: the true person; ``phi``: the safety margin (m); ``mirror``: facing the person."""
+    ``person``: the true person; ``phi``: the safety margin (m); ``mirror``: facing the person;
+    ``directions_at_target``: :func:`direction_errors` of the robot placed at q_true (the same for
+    every run of one input: :func:`target_directions`)."""
     is_self = ep.pairs.is_self
     error = ep.q_cbf - ep.q_nom
     negative = np.nan_to_num(ep.h, nan=np.inf) < 0.0
@@ -140,11 +143,15 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         **truth_metrics(ep, phi),
         "fidelity": fidelity(person.q_true, ep.q_sim, free,
                              direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
-                             direction_errors(person.keypoints, person.valid, person.robot_at_target, mirror),
-                             ep.human >= 0, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0),
+                             directions_at_target, ep.human >= 0, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0),
     }
     assert tuple(metrics) == RUN_KEYS
     return metrics
+
+
+def target_directions(person: TruePerson, mirror: bool) -> np.ndarray:
+    """(N, 4) deg: :func:`direction_errors` of the robot placed exactly at the true person's q_true."""
+    return direction_errors(person.keypoints, person.valid, person.robot_at_target, mirror)
 
 
 def input_metrics(
