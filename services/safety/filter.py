@@ -320,11 +320,13 @@ class SafetyFilter:
             if low_own < low_self:
                 low_self = low_own
         rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
-        if p.self_margin > 0.0:  # the hard distance rows aim self_margin beyond φ (module docstring)
-            shift = self._margin_shift(p)
-            np.add(b_all, shift, out=b_all)
-            if not np.shares_memory(rows.b, b_all):  # a barrier that stacked copies: its reported rows too
-                rows.b += shift[: rows.b.shape[0]]
+        # the hard distance rows aim self_margin beyond φ (module docstring): their b shift, added to the
+        # stacked b by prepare_qp below and here to the reported pair rows unless they view the stacked b
+        # (a barrier that stacked copies: :meth:`Barrier.write_rows`' default)
+        shifted = p.self_margin > 0.0
+        shift = self._shift if self._shift_for is p else self._margin_shift(p)
+        if shifted and rows.b.base is not b_all:
+            rows.b += shift[: rows.b.shape[0]]
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
         if q_nom.shape != q.shape or dq_nom.shape != q.shape:
@@ -338,8 +340,8 @@ class SafetyFilter:
         # intrusion, reported below, not a row the robot could honour).
         k, honours = self._prepare.call(q_nom, dq_nom, dq_nom is not q_nom, p.gain, q, self._limits, BRAKE_SHARE,
                                         u_prev if bounded else q, bounded, dt, u_ref, boxes, A_all, b_all,
-                                        soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp, self._soft_qp,
-                                        self._kept, self._stacked)
+                                        shift, shifted, soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp,
+                                        self._soft_qp, self._kept, self._stacked)
         lower, upper = (boxes[LOW], boxes[HIGH]) if bounded else (boxes[LOWER], boxes[UPPER])
         A, b, stacked = self._qp_views(k)
         problem = QPProblem(p.weights, u_ref, A, b, lower, upper, stacked)

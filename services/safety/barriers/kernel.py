@@ -89,17 +89,22 @@ def pair_rows(normal, s, t, h, jacobians, velocities, first, second, n_robot, ga
         ia, ib = first[i], second[i]
         wa0, wa1 = 1.0 - s[i], s[i]
         wb0, wb1 = 1.0 - t[i], t[i]
-        # column k sums its terms in the order c = 0, 1, 2 (A then B) as a scalar loop would; the
-        # loop over k is innermost, along the Jacobians' contiguous axis
+        # column k sums its terms from 0.0 in the order c = 0, 1, 2 (A then B) as a scalar loop
+        # would, in a register (A may alias the Jacobians as far as the compiler knows)
+        n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
+        robot = ib < n_robot
         for k in range(n_joints):
-            A[i, k] = 0.0
-        for c in range(3):
-            n_c = normal[i, c]
-            for k in range(n_joints):
-                A[i, k] += n_c * (wa0 * jacobians[ia, 0, c, k] + wa1 * jacobians[ia, 1, c, k])
-            if ib < n_robot:
-                for k in range(n_joints):
-                    A[i, k] -= n_c * (wb0 * jacobians[ib, 0, c, k] + wb1 * jacobians[ib, 1, c, k])
+            acc = 0.0
+            acc += n0 * (wa0 * jacobians[ia, 0, 0, k] + wa1 * jacobians[ia, 1, 0, k])
+            if robot:
+                acc -= n0 * (wb0 * jacobians[ib, 0, 0, k] + wb1 * jacobians[ib, 1, 0, k])
+            acc += n1 * (wa0 * jacobians[ia, 0, 1, k] + wa1 * jacobians[ia, 1, 1, k])
+            if robot:
+                acc -= n1 * (wb0 * jacobians[ib, 0, 1, k] + wb1 * jacobians[ib, 1, 1, k])
+            acc += n2 * (wa0 * jacobians[ia, 0, 2, k] + wa1 * jacobians[ia, 1, 2, k])
+            if robot:
+                acc -= n2 * (wb0 * jacobians[ib, 0, 2, k] + wb1 * jacobians[ib, 1, 2, k])
+            A[i, k] = acc
         v_known = 0.0
         if ib >= n_robot:
             for c in range(3):

@@ -101,10 +101,12 @@ def limits_table(q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None,
 
 
 @njit(cache=True, nogil=True)
-def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt, u_ref, boxes, A_all, b_all, soft_all,
-               tol, enforce, A_qp, soft_qp, kept, stacked):  # pragma: no cover - compiled
+def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt, u_ref, boxes, A_all, b_all, shift,
+               shifted, soft_all, tol, enforce, A_qp, soft_qp, kept, stacked):  # pragma: no cover - compiled
     """A step's QP inputs in one call; returns (k, within).
 
+    First, if ``shifted``, ``b_all`` (M,) ← ``b_all`` + ``shift`` (M,) in place, every row (the self
+    margin's b shift: the same values as ``np.add(b_all, shift, out=b_all)``; the stacked b keeps it).
     ``u_ref`` ← ``gain`` (q_nom − q) (+ ``dq_nom`` if ``feed``); ``boxes`` (4, n) rows LOWER, UPPER ←
     :func:`velocity_box` and, if ``bounded``, rows LOW, HIGH and within ← :func:`bounded_box` at
     factor 1 (``limits``: :func:`limits_table`; within True when not bounded). With ``enforce``, the
@@ -114,6 +116,9 @@ def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt,
     row 0 [:n] ← f = −W u_ref, row 1 [:n + k] ← [box lower; b of the kept rows], row 2 [:n] ← box
     upper (the box used: LOW/HIGH if bounded, else LOWER/UPPER; row 2 [n:] holds ``INF_BOUND``, the caller's)."""
     n = q.shape[0]
+    if shifted:
+        for i in range(b_all.shape[0]):
+            b_all[i] += shift[i]
     for j in range(n):
         u = gain * (q_nom[j] - q[j])
         u_ref[j] = u + dq_nom[j] if feed else u
