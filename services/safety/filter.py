@@ -227,6 +227,8 @@ class SafetyFilter:
         self._A_qp = np.empty((start, n))
         self._soft_qp, self._kept = np.empty(start, bool), np.empty(start, np.intp)
         self._box_rows = np.empty((4, n))
+        #: the box a step uses, views of _box_rows: [not bounded] (LOWER, UPPER), [bounded] (LOW, HIGH)
+        self._box_views = ((self._box_rows[LOWER], self._box_rows[UPPER]), (self._box_rows[LOW], self._box_rows[HIGH]))
         self._stacked = np.empty((3, n + start))
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
@@ -342,7 +344,7 @@ class SafetyFilter:
                                         u_prev if bounded else q, bounded, dt, u_ref, boxes, A_all, b_all,
                                         shift, shifted, soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp,
                                         self._soft_qp, self._kept, self._stacked)
-        lower, upper = (boxes[LOW], boxes[HIGH]) if bounded else (boxes[LOWER], boxes[UPPER])
+        lower, upper = self._box_views[bounded]
         A, b, stacked = self._qp_views(k)
         problem = QPProblem(p.weights, u_ref, A, b, lower, upper, stacked)
         solution = self._qp.solve(problem)
@@ -366,7 +368,7 @@ class SafetyFilter:
         u, out = np.ascontiguousarray(u, dtype=np.float64), np.empty((4, n))
         if self._integrate.call(u, lower, upper, q, dt, self.q_min, self.q_max, u if u_prev is None else u_prev,
                               u_prev is not None, out):
-            u, q_next, q_result, ddq = out
+            u, q_next, q_result, ddq = out[0], out[1], out[2], out[3]  # (indexing: half an iteration's cost)
         else:  # not finite
             u, q_next, mode = np.zeros(n), q.copy(), SafetyMode.HOLD
             q_result = q_next.copy()
