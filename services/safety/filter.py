@@ -220,12 +220,12 @@ class SafetyFilter:
             start += len(b.row_names())
         n, self._m_all = len(kinematics.joint_names), start
         # buffers of one step (every result gets fresh arrays): the stacked priorities, the QP's rows
-        # (the movable ones) with their priorities and stacked indices, the boxes (prepare_qp's rows
+        # (the movable ones) and their stacked indices, the boxes (prepare_qp's rows
         # LOWER, UPPER, LOW, HIGH), the QP in DAQP's layout (prepare_qp's ``stacked``; the rows' upper
         # bounds infinite) and its views for k rows (:meth:`_qp_views`)
         self._soft_all = np.empty(start, bool)
         self._A_qp = np.empty((start, n))
-        self._soft_qp, self._kept = np.empty(start, bool), np.empty(start, np.intp)
+        self._kept = np.empty(start, np.intp)
         self._box_rows = np.empty((4, n))
         #: the box a step uses, views of _box_rows: [not bounded] (LOWER, UPPER), [bounded] (LOW, HIGH)
         self._box_views = ((self._box_rows[LOWER], self._box_rows[UPPER]), (self._box_rows[LOW], self._box_rows[HIGH]))
@@ -342,8 +342,8 @@ class SafetyFilter:
         # intrusion, reported below, not a row the robot could honour).
         k, honours = self._prepare.call(q_nom, dq_nom, dq_nom is not q_nom, p.gain, q, self._limits, BRAKE_SHARE,
                                         u_prev if bounded else q, bounded, dt, u_ref, boxes, A_all, b_all,
-                                        shift, shifted, soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp,
-                                        self._soft_qp, self._kept, self._stacked)
+                                        shift, shifted, _STATIC_ROW, bool(self.enforce), self._A_qp, self._kept,
+                                        self._stacked)
         lower, upper = self._box_views[bounded]
         A, b, stacked = self._qp_views(k)
         problem = QPProblem(p.weights, u_ref, A, b, lower, upper, stacked)
@@ -359,14 +359,14 @@ class SafetyFilter:
                 mode = SafetyMode.RELAXED
         else:
             u, mode, active, relaxed, gave_way, seconds, lower, upper, honours = self._relaxed_step(
-                problem, q, dt, self._soft_qp[: b.shape[0]], self._kept[: b.shape[0]], rows.b.shape[0])
+                problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0])
             qp_time += seconds
         if not honours:
             gave_way += (ACCEL_BOUND,)
         # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within
         # the limits, a copy of it and ddq: the rows of one fresh array (the solver's u as the kernel's type)
         u, out = np.ascontiguousarray(u, dtype=np.float64), np.empty((4, n))
-        if self._integrate.call(u, lower, upper, q, dt, self.q_min, self.q_max, u if u_prev is None else u_prev,
+        if self._integrate.call(u, lower, upper, q, dt, self._limits, u if u_prev is None else u_prev,
                               u_prev is not None, out):
             u, q_next, q_result, ddq = out[0], out[1], out[2], out[3]  # (indexing: half an iteration's cost)
         else:  # not finite

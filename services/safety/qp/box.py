@@ -102,7 +102,7 @@ def limits_table(q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None,
 
 @njit(cache=True, nogil=True)
 def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt, u_ref, boxes, A_all, b_all, shift,
-               shifted, soft_all, tol, enforce, A_qp, soft_qp, kept, stacked):  # pragma: no cover - compiled
+               shifted, tol, enforce, A_qp, kept, stacked):  # pragma: no cover - compiled
     """A step's QP inputs in one call; returns (k, within).
 
     First, if ``shifted``, ``b_all`` (M,) ← ``b_all`` + ``shift`` (M,) in place, every row (the self
@@ -110,9 +110,9 @@ def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt,
     ``u_ref`` ← ``gain`` (q_nom − q) (+ ``dq_nom`` if ``feed``); ``boxes`` (4, n) rows LOWER, UPPER ←
     :func:`velocity_box` and, if ``bounded``, rows LOW, HIGH and within ← :func:`bounded_box` at
     factor 1 (``limits``: :func:`limits_table`; within True when not bounded). With ``enforce``, the
-    k stacked rows (``A_all``, ``b_all``, ``soft_all``) a velocity can move (their largest |A_ij| >
-    ``tol``, ``services.safety.barriers.kernel``) are copied in order into ``A_qp``, ``soft_qp`` and
-    their indices into ``kept`` (k = 0 without). ``stacked`` (3, n + M) is the QP in DAQP's layout:
+    k stacked rows (``A_all``, ``b_all``) a velocity can move (their largest |A_ij| > ``tol``,
+    ``services.safety.barriers.kernel``) are copied in order into ``A_qp`` and their indices into
+    ``kept`` (k = 0 without). ``stacked`` (3, n + M) is the QP in DAQP's layout:
     row 0 [:n] ← f = −W u_ref, row 1 [:n + k] ← [box lower; b of the kept rows], row 2 [:n] ← box
     upper (the box used: LOW/HIGH if bounded, else LOWER/UPPER; row 2 [n:] holds ``INF_BOUND``, the caller's)."""
     n = q.shape[0]
@@ -141,19 +141,19 @@ def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt,
                 for j in range(n):
                     A_qp[k, j] = A_all[i, j]
                 stacked[1, n + k] = b_all[i]
-                soft_qp[k] = soft_all[i]
                 kept[k] = i
                 k += 1
     return k, within
 
 
 @njit(cache=True, nogil=True)
-def integrate(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, out):  # pragma: no cover - compiled
+def integrate(u, lower, upper, q, dt, limits, u_prev, has_prev, out):  # pragma: no cover - compiled
     """The integration step and the command's acceleration: ``out`` (4, n) rows ← u clipped to
-    [``lower``, ``upper``], q⁺ = q + dt·u clipped to the joint limits, a copy of q⁺, ddq = (u −
+    [``lower``, ``upper``], q⁺ = q + dt·u clipped to the joint limits (rows :data:`Q_MIN`,
+    :data:`Q_MAX` of ``limits``, :func:`limits_table`), a copy of q⁺, ddq = (u −
     u_prev)/dt (zero unless ``has_prev``); False (``out`` partly written) when q⁺ is not finite."""
     u_out, q_out = out[0], out[1]
-    if not _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):
+    if not _step(u, lower, upper, q, dt, limits[Q_MIN], limits[Q_MAX], u_out, q_out):
         return False
     for j in range(q.shape[0]):
         out[2, j] = q_out[j]
