@@ -17,6 +17,8 @@ and for an acceleration bound a (rad/s², braking share β; h = β a Δt / 2):
     [lo, hi] = clip(u_prev ∓ f a Δt, lower, upper)
 
 and u_ref = K (q_nom − q) (+ q̇_nom), the QP's linear term f = −W u_ref, ddq = (u − u_prev)/Δt.
+The helpers (``inline="always"``) are inlined into :func:`prepare_qp` and :func:`integrate`, as in
+:mod:`services.safety.barriers.kernel` (the same operations, without a compiled call's overhead).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from numba import njit  # noqa: E402
 from services.safety.barriers.kernel import row_moves  # noqa: E402
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper):  # pragma: no cover - compiled
     for j in range(q.shape[0]):
         hi = min(u_max[j], (q_max[j] - q[j]) / dt)
@@ -42,7 +44,7 @@ def _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper):  # pragma
         lower[j] = min(lo, hi)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):  # pragma: no cover - compiled
     finite = True
     for j in range(q.shape[0]):
@@ -55,7 +57,7 @@ def _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):  # pragma: no cov
     return finite
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _brake(q, q_min, q_max, a, share, dt, lower, upper):  # pragma: no cover - compiled
     for j in range(q.shape[0]):
         brake = share * a[j]
@@ -65,7 +67,7 @@ def _brake(q, q_min, q_max, a, share, dt, lower, upper):  # pragma: no cover - c
         upper[j] = hi
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _reach(u_prev, a, factor, dt, lower, upper, low, high):  # pragma: no cover - compiled
     within = True
     for j in range(u_prev.shape[0]):
@@ -77,7 +79,7 @@ def _reach(u_prev, a, factor, dt, lower, upper, low, high):  # pragma: no cover 
     return within
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _bounded(q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, factor, dt, lower, upper, low,
              high):  # pragma: no cover - compiled
     _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper)
