@@ -14,7 +14,7 @@ from scipy.optimize import linprog
 
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
-from services.safety.filter import RELAXED_TOL
+from services.safety.filter import RELAXED_TOL, movable_rows
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
 from tests.support.pipelines import DT, alone_at, pipeline_for
@@ -385,3 +385,24 @@ def test_a_bound_kernel_gives_the_dispatchers_values() -> None:
         np.testing.assert_array_equal(h, h_ref)
         np.testing.assert_array_equal(b, b_ref)
     assert bound.call is not joint_rows
+
+
+@pytest.mark.parametrize("geometry", ["capsule", "spheres"])
+def test_the_self_margin_shifts_the_reported_and_the_solved_rows_once(geometry: str) -> None:
+    """The self margin's b shift (γ ε on the hard distance rows) is in the pair rows a step reports,
+    once, whether the barrier's rows view the stacked b (the capsule writer) or are its own copies
+    (a geometry through :meth:`Barrier.write_rows`' default), and the QP the step solved saw it."""
+    margin = 0.003
+    shifted, plain = pipeline_for(geometry=geometry, self_margin=margin), pipeline_for(geometry=geometry, self_margin=0.0)
+    q = np.array([0.0, 0.1, -0.9, 0.3, 0.9, -0.9, -0.3, 0.9])  # arms near the torso
+    for p in (shifted, plain):
+        alone_at(p, q)
+    with_margin, without = shifted.filter.step(q, DT), plain.filter.step(q, DT)
+    self_rows = ~with_margin.rows.soft
+    expected = np.where(self_rows, shifted.filter.params.gamma * margin, 0.0)
+    np.testing.assert_allclose(with_margin.rows.b - without.rows.b, expected, rtol=0.0, atol=1e-12)
+    k = int(movable_rows(np.vstack([block.A for block in shifted.filter.blocks_at(q)])).sum())  # the QP's rows
+    solved = shifted.filter._qp_views(k)[1]  # noqa: SLF001 (the b the step's QP was given)
+    kept = shifted.filter._kept[: solved.shape[0]]  # noqa: SLF001
+    pair = kept < with_margin.rows.b.shape[0]
+    np.testing.assert_array_equal(solved[pair], with_margin.rows.b[kept[pair]])

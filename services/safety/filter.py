@@ -220,13 +220,15 @@ class SafetyFilter:
             start += len(b.row_names())
         n, self._m_all = len(kinematics.joint_names), start
         # buffers of one step (every result gets fresh arrays): the stacked priorities, the QP's rows
-        # (the movable ones) with their priorities and stacked indices, the boxes (prepare_qp's rows
+        # (the movable ones) and their stacked indices, the boxes (prepare_qp's rows
         # LOWER, UPPER, LOW, HIGH), the QP in DAQP's layout (prepare_qp's ``stacked``; the rows' upper
         # bounds infinite) and its views for k rows (:meth:`_qp_views`)
         self._soft_all = np.empty(start, bool)
         self._A_qp = np.empty((start, n))
-        self._soft_qp, self._kept = np.empty(start, bool), np.empty(start, np.intp)
+        self._kept = np.empty(start, np.intp)
         self._box_rows = np.empty((4, n))
+        #: the box a step uses, views of _box_rows: [not bounded] (LOWER, UPPER), [bounded] (LOW, HIGH)
+        self._box_views = ((self._box_rows[LOWER], self._box_rows[UPPER]), (self._box_rows[LOW], self._box_rows[HIGH]))
         self._stacked = np.empty((3, n + start))
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
@@ -320,11 +322,13 @@ class SafetyFilter:
             if low_own < low_self:
                 low_self = low_own
         rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
-        if p.self_margin > 0.0:  # the hard distance rows aim self_margin beyond φ (module docstring)
-            shift = self._margin_shift(p)
-            np.add(b_all, shift, out=b_all)
-            if not np.shares_memory(rows.b, b_all):  # a barrier that stacked copies: its reported rows too
-                rows.b += shift[: rows.b.shape[0]]
+        # the hard distance rows aim self_margin beyond φ (module docstring): their b shift, added to the
+        # stacked b by prepare_qp below and here to the reported pair rows unless they view the stacked b
+        # (a barrier that stacked copies: :meth:`Barrier.write_rows`' default)
+        shifted = p.self_margin > 0.0
+        shift = self._shift if self._shift_for is p else self._margin_shift(p)
+        if shifted and rows.b.base is not b_all:
+            rows.b += shift[: rows.b.shape[0]]
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
         if q_nom.shape != q.shape or dq_nom.shape != q.shape:
@@ -338,9 +342,9 @@ class SafetyFilter:
         # intrusion, reported below, not a row the robot could honour).
         k, honours = self._prepare.call(q_nom, dq_nom, dq_nom is not q_nom, p.gain, q, self._limits, BRAKE_SHARE,
                                         u_prev if bounded else q, bounded, dt, u_ref, boxes, A_all, b_all,
-                                        soft_all, _STATIC_ROW, bool(self.enforce), self._A_qp, self._soft_qp,
-                                        self._kept, self._stacked)
-        lower, upper = (boxes[LOW], boxes[HIGH]) if bounded else (boxes[LOWER], boxes[UPPER])
+                                        shift, shifted, _STATIC_ROW, bool(self.enforce), self._A_qp, self._kept,
+                                        self._stacked)
+        lower, upper = self._box_views[bounded]
         A, b, stacked = self._qp_views(k)
         problem = QPProblem(p.weights, u_ref, A, b, lower, upper, stacked)
         solution = self._qp.solve(problem)
@@ -355,16 +359,16 @@ class SafetyFilter:
                 mode = SafetyMode.RELAXED
         else:
             u, mode, active, relaxed, gave_way, seconds, lower, upper, honours = self._relaxed_step(
-                problem, q, dt, self._soft_qp[: b.shape[0]], self._kept[: b.shape[0]], rows.b.shape[0])
+                problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0])
             qp_time += seconds
         if not honours:
             gave_way += (ACCEL_BOUND,)
         # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within
         # the limits, a copy of it and ddq: the rows of one fresh array (the solver's u as the kernel's type)
         u, out = np.ascontiguousarray(u, dtype=np.float64), np.empty((4, n))
-        if self._integrate.call(u, lower, upper, q, dt, self.q_min, self.q_max, u if u_prev is None else u_prev,
+        if self._integrate.call(u, lower, upper, q, dt, self._limits, u if u_prev is None else u_prev,
                               u_prev is not None, out):
-            u, q_next, q_result, ddq = out
+            u, q_next, q_result, ddq = out[0], out[1], out[2], out[3]  # (indexing: half an iteration's cost)
         else:  # not finite
             u, q_next, mode = np.zeros(n), q.copy(), SafetyMode.HOLD
             q_result = q_next.copy()

@@ -17,6 +17,8 @@ and for an acceleration bound a (rad/s², braking share β; h = β a Δt / 2):
     [lo, hi] = clip(u_prev ∓ f a Δt, lower, upper)
 
 and u_ref = K (q_nom − q) (+ q̇_nom), the QP's linear term f = −W u_ref, ddq = (u − u_prev)/Δt.
+The helpers (``inline="always"``) are inlined into :func:`prepare_qp` and :func:`integrate`, as in
+:mod:`services.safety.barriers.kernel` (the same operations, without a compiled call's overhead).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from numba import njit  # noqa: E402
 from services.safety.barriers.kernel import row_moves  # noqa: E402
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper):  # pragma: no cover - compiled
     for j in range(q.shape[0]):
         hi = min(u_max[j], (q_max[j] - q[j]) / dt)
@@ -42,7 +44,7 @@ def _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper):  # pragma
         lower[j] = min(lo, hi)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):  # pragma: no cover - compiled
     finite = True
     for j in range(q.shape[0]):
@@ -55,7 +57,7 @@ def _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):  # pragma: no cov
     return finite
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _brake(q, q_min, q_max, a, share, dt, lower, upper):  # pragma: no cover - compiled
     for j in range(q.shape[0]):
         brake = share * a[j]
@@ -65,7 +67,7 @@ def _brake(q, q_min, q_max, a, share, dt, lower, upper):  # pragma: no cover - c
         upper[j] = hi
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _reach(u_prev, a, factor, dt, lower, upper, low, high):  # pragma: no cover - compiled
     within = True
     for j in range(u_prev.shape[0]):
@@ -77,7 +79,7 @@ def _reach(u_prev, a, factor, dt, lower, upper, low, high):  # pragma: no cover 
     return within
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _bounded(q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, factor, dt, lower, upper, low,
              high):  # pragma: no cover - compiled
     _box(q, q_min, q_max, u_min, u_max, negate_min, dt, lower, upper)
@@ -101,19 +103,24 @@ def limits_table(q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None,
 
 
 @njit(cache=True, nogil=True)
-def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt, u_ref, boxes, A_all, b_all, soft_all,
-               tol, enforce, A_qp, soft_qp, kept, stacked):  # pragma: no cover - compiled
+def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt, u_ref, boxes, A_all, b_all, shift,
+               shifted, tol, enforce, A_qp, kept, stacked):  # pragma: no cover - compiled
     """A step's QP inputs in one call; returns (k, within).
 
+    First, if ``shifted``, ``b_all`` (M,) ← ``b_all`` + ``shift`` (M,) in place, every row (the self
+    margin's b shift: the same values as ``np.add(b_all, shift, out=b_all)``; the stacked b keeps it).
     ``u_ref`` ← ``gain`` (q_nom − q) (+ ``dq_nom`` if ``feed``); ``boxes`` (4, n) rows LOWER, UPPER ←
     :func:`velocity_box` and, if ``bounded``, rows LOW, HIGH and within ← :func:`bounded_box` at
     factor 1 (``limits``: :func:`limits_table`; within True when not bounded). With ``enforce``, the
-    k stacked rows (``A_all``, ``b_all``, ``soft_all``) a velocity can move (their largest |A_ij| >
-    ``tol``, ``services.safety.barriers.kernel``) are copied in order into ``A_qp``, ``soft_qp`` and
-    their indices into ``kept`` (k = 0 without). ``stacked`` (3, n + M) is the QP in DAQP's layout:
+    k stacked rows (``A_all``, ``b_all``) a velocity can move (their largest |A_ij| > ``tol``,
+    ``services.safety.barriers.kernel``) are copied in order into ``A_qp`` and their indices into
+    ``kept`` (k = 0 without). ``stacked`` (3, n + M) is the QP in DAQP's layout:
     row 0 [:n] ← f = −W u_ref, row 1 [:n + k] ← [box lower; b of the kept rows], row 2 [:n] ← box
     upper (the box used: LOW/HIGH if bounded, else LOWER/UPPER; row 2 [n:] holds ``INF_BOUND``, the caller's)."""
     n = q.shape[0]
+    if shifted:
+        for i in range(b_all.shape[0]):
+            b_all[i] += shift[i]
     for j in range(n):
         u = gain * (q_nom[j] - q[j])
         u_ref[j] = u + dq_nom[j] if feed else u
@@ -136,19 +143,19 @@ def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt,
                 for j in range(n):
                     A_qp[k, j] = A_all[i, j]
                 stacked[1, n + k] = b_all[i]
-                soft_qp[k] = soft_all[i]
                 kept[k] = i
                 k += 1
     return k, within
 
 
 @njit(cache=True, nogil=True)
-def integrate(u, lower, upper, q, dt, q_min, q_max, u_prev, has_prev, out):  # pragma: no cover - compiled
+def integrate(u, lower, upper, q, dt, limits, u_prev, has_prev, out):  # pragma: no cover - compiled
     """The integration step and the command's acceleration: ``out`` (4, n) rows ← u clipped to
-    [``lower``, ``upper``], q⁺ = q + dt·u clipped to the joint limits, a copy of q⁺, ddq = (u −
+    [``lower``, ``upper``], q⁺ = q + dt·u clipped to the joint limits (rows :data:`Q_MIN`,
+    :data:`Q_MAX` of ``limits``, :func:`limits_table`), a copy of q⁺, ddq = (u −
     u_prev)/dt (zero unless ``has_prev``); False (``out`` partly written) when q⁺ is not finite."""
     u_out, q_out = out[0], out[1]
-    if not _step(u, lower, upper, q, dt, q_min, q_max, u_out, q_out):
+    if not _step(u, lower, upper, q, dt, limits[Q_MIN], limits[Q_MAX], u_out, q_out):
         return False
     for j in range(q.shape[0]):
         out[2, j] = q_out[j]

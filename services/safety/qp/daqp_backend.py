@@ -24,7 +24,7 @@ DAQP_LOWER = 2
 _DUAL_TOL = 1e-12
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _warm_sense(lam, tol, sense):  # pragma: no cover - compiled
     for i in range(lam.shape[0]):
         if lam[i] > tol:
