@@ -220,15 +220,11 @@ class SafetyFilter:
             start += len(b.row_names())
         n, self._m_all = len(kinematics.joint_names), start
         # buffers of one step (every result gets fresh arrays): the stacked priorities, the QP's rows
-        # (the movable ones) and their stacked indices, the boxes (prepare_qp's rows
-        # LOWER, UPPER, LOW, HIGH), the QP in DAQP's layout (prepare_qp's ``stacked``; the rows' upper
+        # (the movable ones) and their stacked indices, the QP in DAQP's layout (prepare_qp's ``stacked``; the rows' upper
         # bounds infinite) and its views for k rows (:meth:`_qp_views`)
         self._soft_all = np.empty(start, bool)
         self._A_qp = np.empty((start, n))
         self._kept = np.empty(start, np.intp)
-        self._box_rows = np.empty((4, n))
-        #: the box a step uses, views of _box_rows: [not bounded] (LOWER, UPPER), [bounded] (LOW, HIGH)
-        self._box_views = ((self._box_rows[LOWER], self._box_rows[UPPER]), (self._box_rows[LOW], self._box_rows[HIGH]))
         self._stacked = np.empty((3, n + start))
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
@@ -260,21 +256,24 @@ class SafetyFilter:
     @property
     def params(self) -> FilterParams:
         """The step's parameters (frozen; their arrays are never written): setting them rebuilds the
-        per-joint constants of :func:`~services.safety.qp.box.prepare_qp`."""
+        per-joint table of :func:`~services.safety.qp.box.prepare_qp` (its constants and the boxes it
+        writes)."""
         return self._params
 
     @params.setter
     def params(self, params: FilterParams) -> None:
         self._params = params
-        self._limits = limits_table(self.q_min, self.q_max, params.u_min, params.u_max, params.accel_max,
-                                    params.weights)
+        self._limits = limits = limits_table(self.q_min, self.q_max, params.u_min, params.u_max, params.accel_max,
+                                             params.weights)
+        #: the box a step uses, views of the table's box rows: [not bounded] (LOWER, UPPER), [bounded] (LOW, HIGH)
+        self._box_views = ((limits[LOWER], limits[UPPER]), (limits[LOW], limits[HIGH]))
 
     def _qp_views(self, k: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(A, b, (f, bounds lower, bounds upper)) of the QP with k rows: views of the buffers
         :func:`~services.safety.qp.box.prepare_qp` writes (made once per k)."""
         views = self._views.get(k)
         if views is None:
-            n, stacked = self._box_rows.shape[1], self._stacked
+            n, stacked = self._limits.shape[1], self._stacked
             views = self._views[k] = (self._A_qp[:k], stacked[1, n:n + k],
                                       (stacked[0, :n], stacked[1, :n + k], stacked[2, :n + k]))
         return views
@@ -333,7 +332,7 @@ class SafetyFilter:
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
         if q_nom.shape != q.shape or dq_nom.shape != q.shape:
             raise ValueError(f"q_nom and dq_nom must have shape {q.shape}")
-        u_ref, boxes, u_prev = np.empty(n), self._box_rows, self._u_prev
+        u_ref, u_prev = np.empty(n), self._u_prev
         bounded = accel is not None and u_prev is not None
         dt = float(dt)
         # With enforce, rows no velocity can change (a pair of a static link such as a locked thigh, a
@@ -341,7 +340,7 @@ class SafetyFilter:
         # where a failing one would only make it infeasible (a person touching a static link is an
         # intrusion, reported below, not a row the robot could honour).
         k, honours = self._prepare.call(q_nom, dq_nom, dq_nom is not q_nom, p.gain, q, self._limits, BRAKE_SHARE,
-                                        u_prev if bounded else q, bounded, dt, u_ref, boxes, A_all, b_all,
+                                        u_prev if bounded else q, bounded, dt, u_ref, A_all, b_all,
                                         shift, shifted, _STATIC_ROW, bool(self.enforce), self._A_qp, self._kept,
                                         self._stacked)
         lower, upper = self._box_views[bounded]

@@ -41,8 +41,7 @@ class CapsuleBarrier(CollisionGeometry):
         super().__init__(pairs, robot_radii, n_joints)
         self._first = np.ascontiguousarray(pairs.first, dtype=np.int64)
         self._second = np.ascontiguousarray(pairs.second, dtype=np.int64)
-        self._writer = SegmentRowWriter(self._endpoints, self._radii, self._velocities, self._first, self._second,
-                                        self._flags)
+        self._writer = SegmentRowWriter(self._motion, self._radii, self._first, self._second, self._flags)
 
     def evaluate(
         self, robot_endpoints: np.ndarray, robot_jacobians: np.ndarray, gamma: float, phi: float, lookahead: float = 0.0

@@ -39,7 +39,10 @@ class JointBarrier(Barrier):
             rows += [(j, -1.0, upper)] if upper is not None else []
         index, sign, bound = (np.array(v, dtype=float) for v in (zip(*rows) if rows else ((), (), ())))
         self.index = index.astype(np.intp)
-        self.sign, self.bound = sign, bound
+        #: (2, m) each row's sign and bound (one argument of the compiled writer); :attr:`sign` and
+        #: :attr:`bound` view it
+        self._signed = np.stack([sign, bound])
+        self.sign, self.bound = self._signed
         self._unbounded = np.zeros(len(joint_names))  # the kernel's accel argument without a bound (never read)
         self._A = sign[:, None] * np.eye(len(joint_names))[self.index]
         self._soft = np.zeros(len(self.index), bool)
@@ -60,8 +63,8 @@ class JointBarrier(Barrier):
                    soft: np.ndarray, h: np.ndarray) -> tuple[float, float]:
         """:meth:`constraint_rows` in one compiled call; joint angles are no distances: (inf, inf)."""
         bounded = accel is not None
-        self._write.call(q, self.index, self.sign, self.bound, gamma, accel if bounded else self._unbounded, BRAKE_SHARE,
-                         bounded, self._A, start, A, b, soft, h)
+        self._write.call(q, self.index, self._signed, gamma, accel if bounded else self._unbounded, BRAKE_SHARE, bounded,
+                         self._A, start, A, b, soft, h)
         return NO_DISTANCE
 
     def row_names(self) -> tuple[str, ...]:

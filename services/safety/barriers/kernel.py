@@ -213,23 +213,27 @@ def finish_segment_block(flags, A, b, h, soft):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def write_segment_block(robot_endpoints, segments, radii, jacobians, velocities, pairs, flags, gamma, phi, lookahead,
-                        distance, st, normal, start, A, b, soft, h):  # pragma: no cover - compiled
+def write_segment_block(robot_endpoints, motion, radii, jacobians, pairs, flags, gamma, phi, lookahead, distance,
+                        scratch, start, A, b, soft, h):  # pragma: no cover - compiled
     """The rows of sphere-swept segment pairs (:func:`segment_pairs`) written in place.
 
-    The robot's ``robot_endpoints`` (R, 2, 3) are copied into ``segments[:R]``; row i pairs segment
+    ``motion`` (2, S, 2, 3) holds the segments and their endpoint velocities; the robot's
+    ``robot_endpoints`` (R, 2, 3) are copied into its segments ``[:R]``; row i pairs segment
     ``pairs[0, i]`` with ``pairs[1, i]``; rows ``start`` … ``start + m − 1`` of ``A``, ``b``, ``h`` get
     A, b, h, then :func:`finish_segment_block` with ``flags`` (3, m) = (enabled, self row, soft).
-    ``distance`` (m,), ``st`` (2, m) (s and t) and ``normal`` (m, 3) are written too. Returns (rows that
-    need a fallback normal, min h of the enabled rows, of the enabled self rows); with a fallback
-    needed (then NaN, NaN) A and b are not written: the caller supplies the normals, then
-    :func:`finish_segment_rows`."""
+    ``distance`` (m,) and ``scratch`` (5 m,) = (s (m,), t (m,), normals (m, 3) row-major) are written
+    too. Returns (rows that need a fallback normal, min h of the enabled rows, of the enabled self
+    rows); with a fallback needed (then NaN, NaN) A and b are not written: the caller supplies the
+    normals, then :func:`finish_segment_rows`."""
+    segments, velocities = motion[0], motion[1]
     n_robot = robot_endpoints.shape[0]
     for c in range(n_robot):
         for e in range(2):
             for k in range(3):
                 segments[c, e, k] = robot_endpoints[c, e, k]
-    stop = start + pairs.shape[1]
+    m = pairs.shape[1]
+    stop = start + m
+    st, normal = scratch[:2 * m].reshape((2, m)), scratch[2 * m:].reshape((m, 3))
     hb = h[start:stop]
     need = pair_distances(segments, radii, pairs[0], pairs[1], phi, EPS_NORMAL, distance, hb, st[0], st[1], normal)
     if need:
@@ -252,11 +256,11 @@ def finish_segment_rows(normal, st, jacobians, velocities, pairs, flags, n_robot
 
 
 @njit(cache=True, nogil=True)
-def write_joint_block(q, index, sign, bound, gamma, accel, share, bounded, rows, start, A, b, soft, h):  # pragma: no cover - compiled
-    """:func:`joint_rows` written in place: rows ``start`` … of ``A`` ← the constant ``rows``, of ``b``
-    and ``h`` the joint rows' b and h, of ``soft`` False (hard)."""
+def write_joint_block(q, index, signed, gamma, accel, share, bounded, rows, start, A, b, soft, h):  # pragma: no cover - compiled
+    """:func:`joint_rows` written in place (``signed`` (2, m): its sign and bound rows): rows ``start`` …
+    of ``A`` ← the constant ``rows``, of ``b`` and ``h`` the joint rows' b and h, of ``soft`` False (hard)."""
     stop = start + index.shape[0]
-    joint_rows(q, index, sign, bound, gamma, accel, share, bounded, h[start:stop], b[start:stop])
+    joint_rows(q, index, signed[0], signed[1], gamma, accel, share, bounded, h[start:stop], b[start:stop])
     for i in range(index.shape[0]):
         soft[start + i] = False
         for j in range(rows.shape[1]):

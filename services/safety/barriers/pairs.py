@@ -110,22 +110,25 @@ def fallback_normals(segments: np.ndarray, first: np.ndarray, second: np.ndarray
 
 class SegmentRowWriter:
     """The compiled fast path of the rows of sphere-swept segment pairs (:func:`segment_rows`'s values)
-    written in place (:meth:`Barrier.write_rows`): segments ``segments`` (S, 2, 3) whose first R are
-    the robot's (copied from the forward kinematics at every write), ``radii`` (S,), endpoint
-    ``velocities`` (S, 2, 3), row i pairing ``first[i]`` with ``second[i]``, with per-row ``flags``
-    (3, m) = (enabled, self-collision row, soft). The arrays are the owner's, read at every write
-    (the owner updates them in place; :attr:`flags` may be replaced)."""
+    written in place (:meth:`Barrier.write_rows`): ``motion`` (2, S, 2, 3) C-contiguous = (segments,
+    their endpoint velocities), the first R segments the robot's (copied from the forward kinematics
+    at every write), ``radii`` (S,), row i pairing ``first[i]`` with ``second[i]``, with per-row
+    ``flags`` (3, m) = (enabled, self-collision row, soft). The arrays are the owner's, read at every
+    write (the owner updates them in place, e.g. through views of ``motion``; :attr:`flags` may be
+    replaced)."""
 
-    def __init__(self, segments: np.ndarray, radii: np.ndarray, velocities: np.ndarray, first: np.ndarray,
-                 second: np.ndarray, flags: np.ndarray) -> None:
-        self.segments, self.radii, self.velocities, self.flags = segments, radii, velocities, flags
+    def __init__(self, motion: np.ndarray, radii: np.ndarray, first: np.ndarray, second: np.ndarray,
+                 flags: np.ndarray) -> None:
+        self.motion, self.radii, self.flags = motion, radii, flags
         self.pairs = np.ascontiguousarray(np.stack([first, second]), dtype=np.int64)
         m = self.pairs.shape[1]
-        self._st, self._normal = np.empty((2, m)), np.empty((m, 3))
+        # the kernel's scratch: s and t of every row, then its normal (views for the fallback path)
+        self._scratch = np.empty(5 * m)
+        self._st, self._normal = self._scratch[:2 * m].reshape(2, m), self._scratch[2 * m:].reshape(m, 3)
         self._write = BoundKernel(write_segment_block)
         # numba compiles on first use: the kernel of touching segments, which only such a rare step
         # calls, is compiled now for the types of write's arguments (no row written), not in a control tick
-        finish_segment_rows(self._normal, self._st, np.zeros((0, 2, 3, 0)), velocities, self.pairs[:, :0], flags, 0, 0.0,
+        finish_segment_rows(self._normal, self._st, np.zeros((0, 2, 3, 0)), motion[1], self.pairs[:, :0], flags, 0, 0.0,
                             0.0, 0, np.zeros((0, 0)), np.zeros(0), np.zeros(0, bool), np.zeros(0))
 
     def write(self, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float, lookahead: float,
@@ -134,14 +137,13 @@ class SegmentRowWriter:
         """Rows at the robot's ``endpoints`` (R, 2, 3) and ``jacobians`` (R, 2, 3, n) into rows ``start`` …
         of ``A``, ``b``, ``soft``, ``h`` and their distances into ``distance`` (m,); returns
         :meth:`RowBlock.minima`."""
-        pairs, flags, st, normal = self.pairs, self.flags, self._st, self._normal
-        need, low, low_self = self._write.call(endpoints, self.segments, self.radii, jacobians, self.velocities,
-                                               pairs, flags, gamma, phi, lookahead, distance, st, normal, start,
-                                               A, b, soft, h)
+        pairs, flags, motion = self.pairs, self.flags, self.motion
+        need, low, low_self = self._write.call(endpoints, motion, self.radii, jacobians, pairs, flags, gamma, phi,
+                                               lookahead, distance, self._scratch, start, A, b, soft, h)
         if need:  # segments touching or crossing: the fallback normals, then the rows
-            fallback_normals(self.segments, pairs[0], pairs[1], distance, normal)
-            low, low_self = finish_segment_rows(normal, st, jacobians, self.velocities, pairs, flags, endpoints.shape[0],
-                                                gamma, lookahead, start, A, b, soft, h)
+            fallback_normals(motion[0], pairs[0], pairs[1], distance, self._normal)
+            low, low_self = finish_segment_rows(self._normal, self._st, jacobians, motion[1], pairs, flags,
+                                                endpoints.shape[0], gamma, lookahead, start, A, b, soft, h)
         return low, low_self
 
 
@@ -163,8 +165,10 @@ class CollisionGeometry(Barrier):
         self.robot_radii = np.asarray(robot_radii, dtype=np.float64)
         self.n_joints = n_joints
         n_stack = N_ROBOT + pairs.n_external
-        self._endpoints = np.zeros((n_stack, 2, 3))
-        self._velocities = np.zeros((n_stack, 2, 3))  # robot rows stay zero (their motion is in J u)
+        #: (2, S, 2, 3) the stack's endpoints and endpoint velocities (the robot's stay zero: their
+        #: motion is in J u); :attr:`_endpoints` and :attr:`_velocities` view it
+        self._motion = np.zeros((2, n_stack, 2, 3))
+        self._endpoints, self._velocities = self._motion[0], self._motion[1]
         self._radii = np.zeros(n_stack)
         self._valid = np.ones(n_stack, bool)
         self._radii[:N_ROBOT] = self.robot_radii

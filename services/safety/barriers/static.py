@@ -36,17 +36,17 @@ class StaticCapsuleBarrier(Barrier):
                  static_endpoints: Mapping[str, np.ndarray], static_radii: Mapping[str, float], n_joints: int) -> None:
         statics = list(static_endpoints)
         self.names = tuple(f"{robot}|{static}" for robot, static in pairs)
-        self._segments = np.zeros((N_ROBOT + len(statics), 2, 3))
+        motion = np.zeros((2, N_ROBOT + len(statics), 2, 3))  # the segments and their (zero) velocities
+        self._segments, self._velocities = motion[0], motion[1]
         self._radii = np.concatenate([np.asarray(robot_radii, dtype=np.float64), [static_radii[s] for s in statics]])
         for i, static in enumerate(statics):
             self._segments[N_ROBOT + i] = static_endpoints[static]
-        self._velocities = np.zeros_like(self._segments)
         self._first = np.array([CAPSULE_NAMES.index(robot) for robot, _ in pairs], dtype=np.int64)
         self._second = np.array([N_ROBOT + statics.index(static) for _, static in pairs], dtype=np.int64)
         self._n_joints = n_joints
         m = len(self.names)
         self._hard, self._self, self._enabled = np.zeros(m, bool), np.ones(m, bool), np.ones(m, bool)
-        self._writer = SegmentRowWriter(self._segments, self._radii, self._velocities, self._first, self._second,
+        self._writer = SegmentRowWriter(motion, self._radii, self._first, self._second,
                                         np.stack([self._enabled, self._self, self._hard]))
         self._distance = np.empty(m)  # write_rows' distances (not returned)
 

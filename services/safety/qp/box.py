@@ -87,31 +87,33 @@ def _bounded(q, q_min, q_max, u_min, u_max, negate_min, accel, share, u_prev, fa
     return _reach(u_prev, accel, factor, dt, lower, upper, low, high)
 
 
-#: rows of the filter's constant per-joint table (:func:`limits_table`)
-Q_MIN, Q_MAX, U_MIN, U_MAX, ACCEL, WEIGHT = range(6)
-#: rows of the box buffer (4, n) :func:`prepare_qp` writes: the velocity box, the acceleration-bounded box
-LOWER, UPPER, LOW, HIGH = range(4)
+#: rows of the filter's per-joint table (:func:`limits_table`): the constants Q_MIN … WEIGHT, then the
+#: boxes :func:`prepare_qp` writes at every step (the velocity box, the acceleration-bounded box)
+Q_MIN, Q_MAX, U_MIN, U_MAX, ACCEL, WEIGHT, LOWER, UPPER, LOW, HIGH = range(10)
 
 
 def limits_table(q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray,
                  accel: np.ndarray | None, weights: np.ndarray) -> np.ndarray:
-    """(6, n) the per-joint constants of a step, rows :data:`Q_MIN` … :data:`WEIGHT`: the joint limits,
-    the velocity bounds (u_min None: −u_max, the same values as negating in the kernel), the
-    acceleration bound (None: 0, never read) and the QP weights w."""
+    """(10, n) the per-joint table of a step: the constants, rows :data:`Q_MIN` … :data:`WEIGHT` (the
+    joint limits, the velocity bounds (u_min None: −u_max, the same values as negating in the
+    kernel), the acceleration bound (None: 0, never read) and the QP weights w), then rows
+    :data:`LOWER` … :data:`HIGH` (zero) for the boxes :func:`prepare_qp` writes (one array: one
+    argument of the compiled step)."""
     return np.ascontiguousarray(np.stack([q_min, q_max, -u_max if u_min is None else u_min, u_max,
-                                          np.zeros_like(u_max) if accel is None else accel, weights]), dtype=np.float64)
+                                          np.zeros_like(u_max) if accel is None else accel, weights,
+                                          *np.zeros((4, u_max.shape[0]))]), dtype=np.float64)
 
 
 @njit(cache=True, nogil=True)
-def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt, u_ref, boxes, A_all, b_all, shift,
+def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt, u_ref, A_all, b_all, shift,
                shifted, tol, enforce, A_qp, kept, stacked):  # pragma: no cover - compiled
     """A step's QP inputs in one call; returns (k, within).
 
     First, if ``shifted``, ``b_all`` (M,) ← ``b_all`` + ``shift`` (M,) in place, every row (the self
     margin's b shift: the same values as ``np.add(b_all, shift, out=b_all)``; the stacked b keeps it).
-    ``u_ref`` ← ``gain`` (q_nom − q) (+ ``dq_nom`` if ``feed``); ``boxes`` (4, n) rows LOWER, UPPER ←
-    :func:`velocity_box` and, if ``bounded``, rows LOW, HIGH and within ← :func:`bounded_box` at
-    factor 1 (``limits``: :func:`limits_table`; within True when not bounded). With ``enforce``, the
+    ``u_ref`` ← ``gain`` (q_nom − q) (+ ``dq_nom`` if ``feed``); rows LOWER, UPPER of ``limits``
+    (:func:`limits_table`, whose constant rows it reads) ← :func:`velocity_box` and, if ``bounded``,
+    rows LOW, HIGH and within ← :func:`bounded_box` at factor 1 (within True when not bounded). With ``enforce``, the
     k stacked rows (``A_all``, ``b_all``) a velocity can move (their largest |A_ij| > ``tol``,
     ``services.safety.barriers.kernel``) are copied in order into ``A_qp`` and their indices into
     ``kept`` (k = 0 without). ``stacked`` (3, n + M) is the QP in DAQP's layout:
@@ -125,12 +127,12 @@ def prepare_qp(q_nom, dq_nom, feed, gain, q, limits, share, u_prev, bounded, dt,
         u = gain * (q_nom[j] - q[j])
         u_ref[j] = u + dq_nom[j] if feed else u
         stacked[0, j] = -limits[WEIGHT, j] * u_ref[j]
-    lower, upper = boxes[LOWER], boxes[UPPER]
+    lower, upper = limits[LOWER], limits[UPPER]
     within = True
     if bounded:
         within = _bounded(q, limits[Q_MIN], limits[Q_MAX], limits[U_MIN], limits[U_MAX], False, limits[ACCEL], share,
-                          u_prev, 1.0, dt, lower, upper, boxes[LOW], boxes[HIGH])
-        lower, upper = boxes[LOW], boxes[HIGH]
+                          u_prev, 1.0, dt, lower, upper, limits[LOW], limits[HIGH])
+        lower, upper = limits[LOW], limits[HIGH]
     else:
         _box(q, limits[Q_MIN], limits[Q_MAX], limits[U_MIN], limits[U_MAX], False, dt, lower, upper)
     for j in range(n):
