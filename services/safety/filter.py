@@ -234,6 +234,12 @@ class SafetyFilter:
         self._none_relaxed.flags.writeable = False
         self.q_min = np.asarray(kinematics.q_min, dtype=np.float64)
         self.q_max = np.asarray(kinematics.q_max, dtype=np.float64)
+        self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
+        self._params = params  # blocks_at reads them; the setter below derives the rest
+        #: (M,) bool: the stacked hard distance rows (self and static pairs), which aim self_margin beyond φ
+        self._self_rows = np.concatenate([
+            ~block.soft.astype(bool) if barrier.measures_distance else np.zeros(block.b.shape[0], bool)
+            for barrier, block in zip(self.barriers, self.blocks_at(self.q_cbf))])
         self.params = params
         self.backend_name = backend
         self._qp: QPBackend = make_backend(backend)
@@ -244,20 +250,13 @@ class SafetyFilter:
         # declared such feasible problems infeasible (44 steps of one development clip)
         self._relaxed_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
         self._tracking_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
-        self.q_cbf = np.clip(np.asarray(kinematics.q_home, dtype=np.float64), self.q_min, self.q_max)
         self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
-        #: (M,) bool: the stacked hard distance rows (self and static pairs), which aim self_margin beyond φ
-        self._self_rows = np.concatenate([
-            ~block.soft.astype(bool) if barrier.measures_distance else np.zeros(block.b.shape[0], bool)
-            for barrier, block in zip(self.barriers, self.blocks_at(self.q_cbf))])
-        self._shift_for: FilterParams | None = None  # the parameters _shift was computed for
-        self._shift = np.zeros(self._m_all)
 
     @property
     def params(self) -> FilterParams:
         """The step's parameters (frozen; their arrays are never written): setting them rebuilds the
         per-joint table of :func:`~services.safety.qp.box.prepare_qp` (its constants and the boxes it
-        writes)."""
+        writes) and the self margin's shift of b."""
         return self._params
 
     @params.setter
@@ -267,6 +266,8 @@ class SafetyFilter:
                                              params.weights)
         #: the box a step uses, views of the table's box rows: [not bounded] (LOWER, UPPER), [bounded] (LOW, HIGH)
         self._box_views = ((limits[LOWER], limits[UPPER]), (limits[LOW], limits[HIGH]))
+        #: (M,) γ ε on the stacked hard distance rows, 0 elsewhere: their b shift (module docstring)
+        self._shift = self._self_rows * (params.gamma * params.self_margin)
 
     def _qp_views(self, k: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(A, b, (f, bounds lower, bounds upper)) of the QP with k rows: views of the buffers
@@ -325,7 +326,7 @@ class SafetyFilter:
         # stacked b by prepare_qp below and here to the reported pair rows unless they view the stacked b
         # (a barrier that stacked copies: :meth:`Barrier.write_rows`' default)
         shifted = p.self_margin > 0.0
-        shift = self._shift if self._shift_for is p else self._margin_shift(p)
+        shift = self._shift
         if shifted and rows.b.base is not b_all:
             rows.b += shift[: rows.b.shape[0]]
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
@@ -381,14 +382,6 @@ class SafetyFilter:
         return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
                           gave_way, None if low_self == math.inf else low_self, ddq)
 
-    def _margin_shift(self, params: FilterParams) -> np.ndarray:
-        """(M,) γ ε on the stacked hard distance rows, 0 elsewhere: their b shift for ``params``
-        (computed again only when the parameters are replaced)."""
-        if self._shift_for is not params:
-            self._shift = self._self_rows * (params.gamma * params.self_margin)
-            self._shift_for = params
-        return self._shift
-
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
                       n_pair: int) -> tuple:
         """The step when the plain QP has no solution: the relaxed solve (:meth:`_relax`) in every box
@@ -397,7 +390,7 @@ class SafetyFilter:
         upper), whether it honours the acceleration bound); u None and mode HOLD when no box works.
         ``soft`` and ``kept`` (their indices among all the stacked rows) of ``problem``'s rows."""
         A, b = problem.A, problem.b
-        margin = self._margin_shift(self.params)[kept]  # each row's b shift
+        margin = self._shift[kept]  # each row's b shift
         seconds = 0.0
         for lower, upper, honours in self._boxes(q, dt):  # the acceleration bound, widened, then none
             problem = QPProblem(w=problem.w, u_ref=problem.u_ref, A=A, b=b, lower=lower, upper=upper)
