@@ -236,6 +236,7 @@ def test_writes_need_the_token(api: ApiServer, method: str, path: str, body: dic
         ("/api/config/safety", {"dt": 0}, "dt"),
         ("/api/config/safety", {"dt": 2.0}, "dt"),
         ("/api/config/safety", {"enabled_pair_groups": ["elbows"]}, "enabled_pair_groups"),
+        ("/api/config/safety", {"enabled_pair_groups": ["human", "self_arms", "human"]}, "enabled_pair_groups"),
         ("/api/config/safety", {"capsule_radii": {"robot": {"nose": 0.1}}}, "capsule_radii"),
         ("/api/config/safety", {"capsule_radii": {"human": {"torso": 3.0}}}, "capsule_radii"),
         ("/api/config/safety", {"human_velocity_term": "maybe"}, "human_velocity_term"),
@@ -358,7 +359,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
         "u_max": [1.5, 1.5, 3.5, 3.5, 3.5, 3.5, 3.5, 3.5],
         "accel_max": [5.0, 5.0, 40.0, 40.0, 100.0, 40.0, 40.0, 100.0],
         "self_margin": 0.004,
-        "enabled_pair_groups": ["human", "self_arms", "human"],
+        "enabled_pair_groups": ["human", "self_arms"],
         "capsule_radii": {"robot": {"left_forearm": 0.061, "torso": 0.12}, "human": {"torso": 0.16, "forearm": 0.055}},
         "human_velocity_term": False,
     }

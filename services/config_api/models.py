@@ -15,7 +15,7 @@ from datetime import datetime
 from typing import Annotated, Any, Literal
 
 import annotated_types
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, Strict
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, Strict
 
 from services.config_api.store import HistoryEntry
 from shared.bus import Received
@@ -44,6 +44,13 @@ def _whole_number(value: Any) -> Any:
     """A JSON number with no fraction is an integer (JSON Schema): 2.0 → 2; strings and booleans stay
     refused by the strict int that follows."""
     return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+def _distinct(groups: list[PairGroup]) -> list[PairGroup]:
+    """A list that names each item once (JSON Schema ``uniqueItems``, as the configuration requires)."""
+    if len(set(groups)) != len(groups):
+        raise ValueError("lists a group twice")
+    return groups
 
 
 def _vector(ge: float | None = None, le: float | None = None, gt: float | None = None, lt: float | None = None) -> Any:
@@ -151,7 +158,9 @@ class SafetyPatch(_Patch):
         None, description="how far beyond φ the self-collision rows aim (m): their linearisation's drift along a curved boundary"
     )
     dt: Annotated[float, Strict(), Field(ge=DT_MIN, le=DT_MAX)] = Field(None, description="control period Δt (s) = 1 / control rate")
-    enabled_pair_groups: set[PairGroup] = Field(None, description="pair groups whose CBF rows are enforced")
+    enabled_pair_groups: Annotated[list[PairGroup], AfterValidator(_distinct)] = Field(
+        None, description="pair groups whose CBF rows are enforced, each once", json_schema_extra={"uniqueItems": True}
+    )
     capsule_radii: CapsuleRadiiPatch = None
     human_velocity_term: StrictBool = Field(None, description="use the person's measured capsule velocities as a known ∂h/∂t")
     geometry: GeometryName = Field(None, description="collision geometry of the CBF rows: capsule | spheres | box (paper Table I)")
