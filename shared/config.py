@@ -122,8 +122,23 @@ class RobotConfig(_Section):
     model: str | None = None
 
 
+class RetargetMethod(str, Enum):
+    """How the person's pose becomes the robot's target (services.safety.assembly.make_retargeter)."""
+
+    LINEAR = "linear"  # paper eq. 2 on every joint
+    DIRECTIONS = "directions"  # eq. 2 for the waist; the arms point where the person's do (through the robot's kinematics)
+
+
 class RetargetingConfig(_Section):
-    """Paper eq. 2: q_nom = clip(q_home + S ⊙ (θ − θ_home) + b, q_min, q_max)."""
+    """Paper eq. 2: q_nom = clip(q_home + S ⊙ (θ − θ_home) + b, q_min, q_max); ``directions``: the
+    arms instead by their segments' directions (services.safety.direction_retarget)."""
+
+    method: RetargetMethod = Field(
+        default=RetargetMethod.DIRECTIONS,
+        description="linear: paper eq. 2 on every joint; directions: eq. 2 for the waist, the arms solved through the "
+        "robot's kinematics so that its upper arms and forearms point where the person's do (S, b, θ_home, q_home then "
+        "apply to the waist only)",
+    )
 
     scale: JointVector = Field(default_factory=lambda: [1.0] * N_JOINTS)
     offset: JointVector = Field(default_factory=lambda: [0.0] * N_JOINTS)

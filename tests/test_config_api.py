@@ -174,7 +174,7 @@ def test_health_and_config_read(api: ApiServer) -> None:
                            "geometry", "sphere_k"}
     assert safety["dt"] == pytest.approx(1.0 / body["config"]["safety"]["rate_hz"])
     assert safety["k"] == body["config"]["safety"]["gain"] and safety["w"] == body["config"]["safety"]["weights"]
-    assert set(body["retarget"]) == {"S", "b", "q_home", "theta_home", "mirror"}
+    assert set(body["retarget"]) == {"S", "b", "q_home", "theta_home", "mirror", "method"}
     assert body["config"]["robot_id"] == defaults.robot_id
     assert body["config"]["api"]["token"] is None
     for path in ("/api/config", "/api/config/history", "/api/status", "/api/health", "/openapi.json"):
@@ -246,6 +246,7 @@ def test_writes_need_the_token(api: ApiServer, method: str, path: str, body: dic
         ("/api/config/retarget", {"q_home": [0.0] * 3}, "q_home"),
         ("/api/config/retarget", {"mirror": [True]}, "mirror"),
         ("/api/config/retarget", {"mirror": 1}, "mirror"),
+        ("/api/config/retarget", {"method": "cubic"}, "method"),
         ("/api/config/retarget", {"S": [True] * 8}, "S"),
     ],
 )
@@ -384,9 +385,10 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
 
 def test_retarget_fields_map_onto_the_config(api: ApiServer) -> None:
     patch = {"S": [1.0, 1.0, 0.8, 0.8, 1.0, 0.8, 0.8, 1.0], "b": [0.0, 0.05, 0, 0, 0, 0, 0, 0],
-             "q_home": [0.0, 0.0, 0.2, 0.3, 1.2, 0.2, -0.3, 1.2], "mirror": True}
+             "q_home": [0.0, 0.0, 0.2, 0.3, 1.2, 0.2, -0.3, 1.2], "mirror": True, "method": "linear"}
     result = api.http.patch("/api/config/retarget", json=patch, headers=AUTH).json()
-    assert sorted(result["changed"]) == ["retargeting.mirror", "retargeting.offset", "retargeting.q_home", "retargeting.scale"]
+    assert sorted(result["changed"]) == ["retargeting.method", "retargeting.mirror", "retargeting.offset", "retargeting.q_home",
+                                         "retargeting.scale"]
     body = api.http.get("/api/config").json()
     retargeting = body["config"]["retargeting"]
     assert retargeting["scale"] == patch["S"] and retargeting["offset"] == patch["b"]

@@ -14,7 +14,8 @@ HALF_PI = np.pi / 2
 
 @pytest.fixture(scope="module", params=[False, True], ids=["side-by-side", "mirror"])
 def pipeline(request):
-    return build_pipeline(load_config(environ={}, overrides={"retargeting": {"mirror": request.param}}))
+    conf = load_config(environ={}, overrides={"retargeting": {"mirror": request.param, "method": "linear"}})
+    return build_pipeline(conf)
 
 
 def arm_directions(pipeline, q: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]:

@@ -20,6 +20,8 @@ import pytest
 
 from pydantic import ValidationError
 
+from services.perception.synthetic import skeleton
+from services.safety.retarget import Retargeter
 from services.safety.service import RESYNC_DONE, RESYNC_TOLERANCE, SafetyService
 from shared.bus import Bus
 from shared.config import BusConfig, load_config
@@ -64,9 +66,11 @@ RADII = np.array([0.13, 0.05, 0.045, 0.05, 0.045, 0.07, 0.07])
 
 def human_state(theta: np.ndarray, capsules: np.ndarray, velocities: np.ndarray | None = None,
                 keypoints: np.ndarray | None = None) -> HumanState:
+    """A state of a person in pose ``theta`` (its skeleton: the synthetic body in that pose, which the
+    retargeting by directions reads) whose capsules the CBF sees at ``capsules``."""
     return HumanState(
         stamp=time.monotonic(),
-        keypoints=person()[0] if keypoints is None else keypoints,
+        keypoints=skeleton(theta) if keypoints is None else keypoints,
         keypoint_valid=np.ones(15, bool),
         theta=theta,
         theta_valid=np.ones(8, bool),
@@ -224,9 +228,9 @@ def live() -> Iterator[Live]:
 
 @pytest.mark.integration
 def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) -> None:
-    keypoints, far = person(2.0)
+    _, far = person(2.0)
     state = {"capsules": far, "velocities": np.zeros((7, 2, 3))}
-    humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"], keypoints))
+    humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"]))
     try:
         # The arm follows the retargeted q_nom (arm forward = negative G1 shoulder pitch).
         command = live.rec.wait("robot/command", lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout_s=5)
@@ -278,9 +282,9 @@ def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) 
 def test_a_person_inside_the_forearm_is_reported_as_intrusion_and_relaxed_pairs_over_zenoh(live: Live) -> None:
     """A person's forearm pushed through the robot's forward-pointing arm at 2 m/s: the rows become
     infeasible, SafetyStatus names the robot–person pairs that gave way and flags the intrusion."""
-    keypoints, far = person(2.0)
+    _, far = person(2.0)
     state = {"capsules": far, "velocities": np.zeros((7, 2, 3))}
-    humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"], keypoints))
+    humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"]))
     try:
         live.rec.wait("robot/command", lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout_s=5)
         time.sleep(0.5)
@@ -448,7 +452,12 @@ def test_stale_human_keeps_capsules_and_stops_imitating(service: SafetyService) 
 
 def test_between_frames_q_nom_is_extrapolated_one_frame_and_its_rate_fed_forward(service: SafetyService) -> None:
     """q_nom(t) = q + q̇ (t − t_received) for one frame period (the stamps' interval),
-    u_ref = q̇_nom + K (q_nom − q_cbf); after that frame, when stale, or with feedforward off: no q̇_nom."""
+    u_ref = q̇_nom + K (q_nom − q_cbf); after that frame, when stale, or with feedforward off: no q̇_nom.
+    With the paper's retargeting (q̇_nom = S θ̇; the directions' rate is tested on its own)."""
+    full = load_config(environ={}, overrides={"retargeting": {"method": "linear"}}).model_dump(mode="json")
+    service.on_config(ConfigUpdate(stamp=0.0, version=2, config=full))
+    service.tick()
+    assert isinstance(service.pipeline.retargeter, Retargeter)
     theta = arm_forward() * 0.4
     first = human_state(theta, person(2.0)[1])
     rate = np.zeros(8)
@@ -506,7 +515,8 @@ def test_vanished_person_is_held_and_stops_imitating_until_forgotten(service: Sa
 
 
 def test_config_update_swaps_pipeline_and_rate(service: SafetyService) -> None:
-    full = load_config(environ={}).model_dump(mode="json")
+    # the paper's retargeting: a person standing neutral maps onto home exactly, so q_cbf stays there
+    full = load_config(environ={}, overrides={"retargeting": {"method": "linear"}}).model_dump(mode="json")
     # a parameter-only change is applied in place: same pipeline, new FilterParams (a margin home
     # keeps: every self pair is >= 3.9 cm apart there, so q_cbf stays at home below)
     pipeline = service.pipeline

@@ -166,8 +166,7 @@ def run_episode(
                 safety.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity and not now_stale))
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     r = safety.retargeter
-                    nominal.update(r(state.theta, state.theta_valid), r.rate(state.theta_rate), state.stamp,
-                                   human.t[newest], horizon, r.q_min, r.q_max)
+                    nominal.update(*r.track(state), state.stamp, human.t[newest], horizon, r.q_min, r.q_max)
                 if newest != applied:
                     sim.set_human(state.capsules, state.capsule_radii, state.capsule_valid, PERCEIVED_PERSON)
                 applied, stale = newest, now_stale

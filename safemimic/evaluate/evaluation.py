@@ -72,7 +72,7 @@ def true_person_of(conf: StackConfig, source: EvaluationInput, kinematics: Robot
     configured retargeting of ``kinematics``' robot)."""
     dt = 1.0 / conf.safety.rate_hz
     t = np.arange(max(1, round(source.seconds / dt))) * dt
-    return true_person(conf, source, t, make_retargeter(conf, kinematics.spec, kinematics), kinematics)
+    return true_person(conf, source, t, make_retargeter(conf, kinematics.spec, RobotKinematics(kinematics.spec)), kinematics)
 
 
 #: Progress callback: (steps done, steps in all) over both runs.

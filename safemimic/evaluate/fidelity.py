@@ -14,7 +14,7 @@ its home pose to the person's first pose, which says nothing of how it follows a
   the free steps (no constraint binds in the CBF run);
 - ``direction_error_deg_p50`` / ``_p95``: over the free steps, the angle between the robot's and
   the person's upper arm (shoulder → elbow) and forearm (elbow → wrist) directions, each in its
-  own torso frame F_T (:func:`services.perception.angles.torso_axes`: e_x right, e_y forward, e_z
+  own torso frame F_T (:func:`shared.torso_frame.torso_axes`: e_x right, e_y forward, e_z
   up). The robot's segments are its CBF capsules' axes at q_sim (torso capsule base as pelvis,
   upper-arm capsule bases as shoulders); facing the person (mirror), the robot's left arm is
   compared with the person's right arm reflected across the sagittal plane (lateral sign
@@ -30,8 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.perception.angles import torso_axes
-from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX
+from shared.torso_frame import person_arm_directions, robot_arm_directions
 
 #: The judged steps begin this long after the first perceived state (s): at the default bounds
 #: (u_max 3 / 10 rad/s, accel_max 10 / 60 rad/s², waist / arms) a joint crosses its whole range in
@@ -43,15 +42,6 @@ MOVING_RAD = 0.2
 MAX_LAG_S = 1.0
 MAX_LEAD_S = 0.2
 _MIN_SEGMENT = 0.05  # m: shorter torso or limb segments give no direction
-
-_K = KEYPOINT_INDEX
-_C = {name: i for i, name in enumerate(CAPSULE_NAMES)}
-#: Per arm side: the person's (start, end) keypoints of upper arm and forearm; the robot's capsule.
-_ARMS = {
-    side: ((_K[f"{side}_shoulder"], _K[f"{side}_elbow"]), (_K[f"{side}_elbow"], _K[f"{side}_wrist"]),
-           _C[f"{side}_upper_arm"], _C[f"{side}_forearm"])
-    for side in ("left", "right")
-}
 
 
 def best_delay(reference: np.ndarray, follower: np.ndarray, dt: float, start: int = 0) -> float | None:
@@ -78,48 +68,18 @@ def lag_ms(q_true: np.ndarray, q_sim: np.ndarray, dt: float, start: int = 0) -> 
     return round(1e3 * float(np.median(delays)), 3) if delays else None
 
 
-def _in_torso(axes, vectors: np.ndarray) -> np.ndarray:
-    e_x, e_y, e_z = (np.asarray(a) for a in axes)
-    return np.stack([vectors @ e_x, vectors @ e_y, vectors @ e_z], axis=-1)
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return np.where(n > _MIN_SEGMENT, v / np.where(n > 0, n, 1.0), np.nan)
-
-
 def direction_errors(keypoints: np.ndarray, valid: np.ndarray, robot: np.ndarray, mirror: bool) -> np.ndarray:
     """Angles (deg) between the person's and the robot's arm segments at each step: (N, 4) in the
-    order left upper arm, left forearm, right upper arm, right forearm (of the robot); NaN where a
-    direction is undefined. ``keypoints`` (N, 15, 3) and ``valid`` (N, 15) the true skeleton,
-    ``robot`` (N, 7, 2, 3) the robot capsules."""
-    n = len(keypoints)
-    out = np.full((n, 4), np.nan)
-    pelvis, l_sh, r_sh = _K["pelvis"], _K["left_shoulder"], _K["right_shoulder"]
-    for k in range(n):
-        if not (valid[k, pelvis] and valid[k, l_sh] and valid[k, r_sh]):
+    order of :data:`shared.torso_frame.ARM_SEGMENTS` (of the robot); NaN where a direction is
+    undefined. ``keypoints`` (N, 15, 3) and ``valid`` (N, 15) the true skeleton, ``robot``
+    (N, 7, 2, 3) the robot capsules."""
+    out = np.full((len(keypoints), 4), np.nan)
+    for k in range(len(keypoints)):
+        person = person_arm_directions(keypoints[k], valid[k], mirror, _MIN_SEGMENT)
+        if np.isnan(person).all():
             continue
-        p = keypoints[k]
-        person_axes = torso_axes(p[pelvis].tolist(), p[l_sh].tolist(), p[r_sh].tolist(), _MIN_SEGMENT)
-        r = robot[k]
-        robot_axes = torso_axes(r[_C["torso"], 0].tolist(), r[_C["left_upper_arm"], 0].tolist(),
-                                r[_C["right_upper_arm"], 0].tolist(), _MIN_SEGMENT)
-        if person_axes is None or robot_axes is None:
-            continue
-        column = 0
-        for side in ("left", "right"):
-            person_side = ("right" if side == "left" else "left") if mirror else side
-            upper, fore, robot_upper, robot_fore = _ARMS[side]
-            person_upper, person_fore, _, _ = _ARMS[person_side]
-            for (a, b), capsule in ((person_upper, robot_upper), (person_fore, robot_fore)):
-                if valid[k, a] and valid[k, b]:
-                    human_dir = _unit(_in_torso(person_axes, p[b] - p[a]))
-                    if mirror:
-                        human_dir = human_dir * np.array([-1.0, 1.0, 1.0])
-                    robot_dir = _unit(_in_torso(robot_axes, r[capsule, 1] - r[capsule, 0]))
-                    cosine = float(np.clip(np.dot(human_dir, robot_dir), -1.0, 1.0))
-                    out[k, column] = np.degrees(np.arccos(cosine))
-                column += 1
+        cosine = np.clip(np.einsum("ij,ij->i", person, robot_arm_directions(robot[k], _MIN_SEGMENT)), -1.0, 1.0)
+        out[k] = np.degrees(np.arccos(cosine))
     return out
 
 

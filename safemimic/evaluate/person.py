@@ -36,7 +36,8 @@ from services.perception.pipeline import PerceptionCounters, PerceptionPipeline
 from services.perception.point_filter import FilteredSkeleton
 from services.perception.base import SkeletonFrame
 from services.safety.kinematics import RobotKinematics
-from services.safety.retarget import Retargeter
+from services.safety.direction_retarget import DirectionRetargeter
+from services.safety.retarget import Pose, Retargeter
 from shared.config import StackConfig
 from shared.messages import HumanState
 
@@ -149,7 +150,7 @@ def interpolate_skeleton(source: EvaluationInput, t: np.ndarray) -> tuple[np.nda
     return points, valid
 
 
-def true_person(conf: StackConfig, source: EvaluationInput, t: np.ndarray, retargeter: Retargeter,
+def true_person(conf: StackConfig, source: EvaluationInput, t: np.ndarray, retargeter: Retargeter | DirectionRetargeter,
                 kinematics: RobotKinematics) -> TruePerson:
     """The true person at control times ``t`` (module docstring); ``retargeter`` maps its angles
     to ``q_true`` (a fresh one per call: it keeps the last valid target), ``kinematics`` places the
@@ -164,7 +165,8 @@ def true_person(conf: StackConfig, source: EvaluationInput, t: np.ndarray, retar
     for k in range(n):
         capsules[k], capsule_valid[k], _ = builder(FilteredSkeleton(float(t[k]), points[k], valid[k], unchanged))
         theta, theta_valid = estimator(np.nan_to_num(points[k]), valid[k], float(t[k]))
-        q_true[k] = retargeter(theta, theta_valid)
+        pose = Pose(theta, theta_valid, np.zeros_like(theta), points[k], valid[k], float(t[k]))
+        q_true[k] = retargeter.track(pose)[0]
         robot_at_target[k] = kinematics.compute(q_true[k])[0]
     return TruePerson(t=t, keypoints=points, valid=valid, capsules=capsules, capsule_valid=capsule_valid,
                       radii=builder.radii.copy(), q_true=q_true, robot_at_target=robot_at_target)

@@ -26,6 +26,7 @@ from shared.config import (
     GeometryName,
     HumanConfig,
     PairGroup,
+    RetargetMethod,
     RetargetingConfig,
     SafetyConfig,
     StackConfig,
@@ -99,6 +100,7 @@ RETARGET_FIELDS: dict[str, str] = {
     "q_home": "retargeting.q_home",
     "theta_home": "retargeting.theta_home",
     "mirror": "retargeting.mirror",
+    "method": "retargeting.method",
 }
 #: Safety request fields whose value goes into the configuration unchanged.
 _DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_velocity_term",
@@ -196,10 +198,16 @@ class RetargetPatch(_Patch):
     q_home: _vector(ge=-math.pi, le=math.pi) | None = Field(None, description="robot pose at θ_home (rad); null: the robot description's home")
     theta_home: _vector(ge=-math.pi, le=math.pi) = Field(None, description="the person's neutral pose θ_home (rad); POST /api/calibrate captures it")
     mirror: StrictBool = Field(None, description="robot facing the person: left and right swapped, roll signs flipped")
+    method: RetargetMethod = Field(
+        None, description="linear: eq. 2 on every joint; directions: the arms point where the person's do (eq. 2 for the waist)"
+    )
 
     def changes(self) -> dict[str, Any]:
         """The configuration fields this patch sets (dotted path → new value)."""
-        return {RETARGET_FIELDS[name]: getattr(self, name) for name in self.model_fields_set}
+        values = {RETARGET_FIELDS[name]: getattr(self, name) for name in self.model_fields_set}
+        if "method" in values:
+            values[RETARGET_FIELDS["method"]] = self.method.value
+        return values
 
 
 # --------------------------------------------------------------------------------------------
@@ -261,10 +269,12 @@ class RetargetParams(_View):
     q_home: list[float] | None
     theta_home: list[float]
     mirror: bool
+    method: RetargetMethod
 
     @classmethod
     def from_config(cls, conf: RetargetingConfig) -> RetargetParams:
-        return cls(S=conf.scale, b=conf.offset, q_home=conf.q_home, theta_home=conf.theta_home, mirror=conf.mirror)
+        return cls(S=conf.scale, b=conf.offset, q_home=conf.q_home, theta_home=conf.theta_home, mirror=conf.mirror,
+                   method=conf.method)
 
 
 class ConfigResponse(_View):

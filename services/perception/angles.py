@@ -99,9 +99,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.perception.point_filter import lowpass_gain
 from shared.config import PoseAnglesConfig, PoseEstimatorName
+from shared.lowpass import lowpass_gain
 from shared.names import KEYPOINT_INDEX, POSE_ANGLE_NAMES
+from shared.torso_frame import Vec, dot as _dot, norm as _norm, sub as _sub, torso_axes
 
 _PELVIS = KEYPOINT_INDEX["pelvis"]
 _L_SHOULDER = KEYPOINT_INDEX["left_shoulder"]
@@ -119,21 +120,6 @@ BRANCH_JUMP = 0.5 * math.pi
 MAX_DECAY_STEP = 0.25 * math.pi
 #: Frame period assumed when the estimator is called without times (s).
 NOMINAL_FRAME_S = 1.0 / 30.0
-Vec = tuple[float, float, float]
-
-
-def _sub(a: Vec, b: Vec) -> Vec:
-    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
-
-
-def _dot(a: Vec, b: Vec) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _norm(a: Vec) -> float:
-    return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
-
-
 def wrap_2pi(angle: float) -> float:
     """``angle`` wrapped into [−π, π)."""
     return angle - _TWO_PI * math.floor((angle + math.pi) / _TWO_PI)
@@ -153,30 +139,6 @@ def smoothstep(x: float) -> float:
     """C¹ ramp: 0 for x ≤ 0, 1 for x ≥ 1, 3x² − 2x³ between."""
     x = min(1.0, max(0.0, x))
     return x * x * (3.0 - 2.0 * x)
-
-
-def torso_axes(pelvis: Vec, left_shoulder: Vec, right_shoulder: Vec, min_segment: float) -> tuple[Vec, Vec, Vec] | None:
-    """Unit e_x (right), e_y (forward), e_z (up) of F_T in the input frame; None if degenerate.
-
-    Degenerate: torso (pelvis → shoulder centre) or orthogonalised shoulder line shorter than
-    ``min_segment`` (m), or non-finite input. Plain float tuples: this runs every frame.
-    """
-    up = (0.5 * (left_shoulder[0] + right_shoulder[0]) - pelvis[0],
-          0.5 * (left_shoulder[1] + right_shoulder[1]) - pelvis[1],
-          0.5 * (left_shoulder[2] + right_shoulder[2]) - pelvis[2])
-    length = _norm(up)
-    if not length >= min_segment:  # also catches NaN
-        return None
-    e_z = (up[0] / length, up[1] / length, up[2] / length)
-    line = _sub(right_shoulder, left_shoulder)
-    along = _dot(line, e_z)
-    line = (line[0] - along * e_z[0], line[1] - along * e_z[1], line[2] - along * e_z[2])
-    width = _norm(line)
-    if not width >= min_segment:
-        return None
-    e_x = (line[0] / width, line[1] / width, line[2] / width)
-    e_y = (e_z[1] * e_x[2] - e_z[2] * e_x[1], e_z[2] * e_x[0] - e_z[0] * e_x[2], e_z[0] * e_x[1] - e_z[1] * e_x[0])
-    return e_x, e_y, e_z
 
 
 def torso_roll_pitch(axes: tuple[Vec, Vec, Vec]) -> tuple[float, float]:

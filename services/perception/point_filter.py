@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.config import PointFilterConfig, PointFilterKind
+from shared.lowpass import lowpass_gain
 
 
 @dataclass(frozen=True)
@@ -49,11 +50,6 @@ class FilteredSkeleton:
     points: np.ndarray
     valid: np.ndarray
     fresh: np.ndarray
-
-
-def lowpass_gain(dt: float, cutoff_hz: float | np.ndarray) -> float | np.ndarray:
-    """Gain α = 1/(1 + τ/Δt), τ = 1/(2π f_c), of a first-order low-pass at ``cutoff_hz`` sampled every ``dt`` s."""
-    return 1.0 / (1.0 + 1.0 / (2.0 * math.pi * cutoff_hz * dt))
 
 
 class _Ema:

@@ -13,9 +13,11 @@ from services.safety.barriers.spheres import SphereBarrier, nominal_human
 from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.human_memory import external_capsules
 from services.safety.kinematics import RobotKinematics
-from services.safety.pairs import N_ROBOT, PairSet, preset_pair_set, select_groups
+from services.safety.pairs import N_ROBOT, PairSet, make_pair_set, preset_pair_set, select_groups
+from services.safety.qp import make_backend
+from services.safety.direction_retarget import DirectionRetargeter
 from services.safety.retarget import Retargeter
-from shared.config import GeometryName, PairGroup, StackConfig
+from shared.config import GeometryName, PairGroup, RetargetMethod, StackConfig
 from shared.messages import HumanState
 from shared.robot_spec import RobotSpec, configured_robot_spec
 
@@ -29,7 +31,9 @@ class SafetyPipeline:
     pairs: PairSet
     barrier: CollisionGeometry
     filter: SafetyFilter
-    retargeter: Retargeter
+    retargeter: Retargeter | DirectionRetargeter
+    #: The retargeter's own kinematics (:func:`make_retargeter`), apart from the filter's buffers.
+    retarget_kinematics: RobotKinematics
 
     def warm_up(self, dt: float, q: np.ndarray | None = None, human: HumanState | None = None, steps: int = 3) -> None:
         """Throw-away steps from ``q`` (default: the filter's) with ``human``'s capsules, so one-time
@@ -49,11 +53,13 @@ class SafetyPipeline:
         filt.reset(q)
 
 
-def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinematics) -> Retargeter:
-    """Paper eq. 2 with q_home = ``retargeting.q_home`` or the robot's home pose, and
-    S = robot sign ⊙ configured scale."""
+def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinematics) -> Retargeter | DirectionRetargeter:
+    """The configured retargeting (``retargeting.method``): paper eq. 2 with q_home =
+    ``retargeting.q_home`` or the robot's home pose and S = robot sign ⊙ configured scale; with
+    ``directions`` that map drives the waist and the arms are solved by direction. ``kinematics``
+    is an instance for the retargeter alone (the direction method overwrites its buffers)."""
     r = conf.retargeting
-    return Retargeter(
+    linear = Retargeter(
         q_home=kinematics.q_home if r.q_home is None else np.asarray(r.q_home),
         q_min=kinematics.q_min,
         q_max=kinematics.q_max,
@@ -62,6 +68,15 @@ def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinemat
         theta_home=np.asarray(r.theta_home),
         mirror=r.mirror,
     )
+    if r.method is RetargetMethod.LINEAR:
+        return linear
+    self_pairs = select_groups(make_pair_set([tuple(p) for p in spec.self_pairs], n_people=0),
+                               {group.value for group in conf.safety.enabled_pair_groups})
+    body = [CapsuleBarrier(self_pairs, robot_radii(conf, kinematics), len(kinematics.joint_names)),
+            make_static_barrier(conf, kinematics)]
+    return DirectionRetargeter(linear, kinematics, conf.perception.angles.rate_cutoff_hz, body, conf.safety.phi,
+                               2.0 * conf.safety.self_margin, make_backend(conf.safety.backend.value),
+                               np.minimum(conf.safety.u_max, np.abs(conf.safety.u_min or conf.safety.u_max)))
 
 
 def robot_radii(conf: StackConfig, kinematics: RobotKinematics) -> np.ndarray:
@@ -107,4 +122,6 @@ def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics
     barrier = make_geometry(conf, pairs, kinematics)
     safety_filter = SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), conf.safety.backend.value,
                                  extra=[make_static_barrier(conf, kinematics)])
-    return SafetyPipeline(spec, kinematics, pairs, barrier, safety_filter, make_retargeter(conf, spec, kinematics))
+    retarget_kinematics = RobotKinematics(spec)
+    return SafetyPipeline(spec, kinematics, pairs, barrier, safety_filter,
+                          make_retargeter(conf, spec, retarget_kinematics), retarget_kinematics)

@@ -11,6 +11,7 @@ body, clear of every self pair); a person standing neutral (θ = θ_home) maps o
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -25,6 +26,37 @@ _MIRROR_SIGN = np.array([-1.0, 1, 1, 1, 1, 1, 1, 1])
 def mirror_pose(theta: np.ndarray) -> np.ndarray:
     """The pose a mirror image of the person would have (8,): arms swapped, torso roll negated."""
     return theta[..., _MIRROR_PERMUTATION] * _MIRROR_SIGN
+
+
+class PoseLike(Protocol):
+    """What a retargeter reads from one human state (``HumanState`` is one): θ, θ_valid, θ̇ (8,)
+    in POSE_ANGLE_NAMES order, the skeleton ``keypoints`` (15, 3) m in the robot frame with
+    ``keypoint_valid`` (15,), and ``stamp`` (s)."""
+
+    @property
+    def theta(self) -> np.ndarray: ...
+    @property
+    def theta_valid(self) -> np.ndarray: ...
+    @property
+    def theta_rate(self) -> np.ndarray: ...
+    @property
+    def keypoints(self) -> np.ndarray: ...
+    @property
+    def keypoint_valid(self) -> np.ndarray: ...
+    @property
+    def stamp(self) -> float: ...
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A :class:`PoseLike` built from parts (the evaluator's true person)."""
+
+    theta: np.ndarray
+    theta_valid: np.ndarray
+    theta_rate: np.ndarray
+    keypoints: np.ndarray
+    keypoint_valid: np.ndarray
+    stamp: float
 
 
 @dataclass
@@ -66,6 +98,14 @@ class Retargeter:
         usable = source_valid & np.isfinite(q)
         self._moving = usable & (raw == q)
         self._last = np.where(usable, q, self._last)
+        return self._last.copy()
+
+    def track(self, pose: PoseLike) -> tuple[np.ndarray, np.ndarray]:
+        """(q_nom, q̇_nom) for ``pose``: :meth:`__call__` and :meth:`rate` of its angles."""
+        return self(pose.theta, pose.theta_valid), self.rate(pose.theta_rate)
+
+    def hold_value(self) -> np.ndarray:
+        """The q_nom (8,) this retargeter holds where it has no valid angle (a copy)."""
         return self._last.copy()
 
     def hold(self, q_nom: np.ndarray) -> None:

@@ -296,8 +296,9 @@ class SafetyService(ScheduledService):
             self.pipeline.filter.reset(q_cbf)
         else:
             self.pipeline.filter.params = FilterParams.from_config(new.safety)
-            if new.retargeting != old.retargeting:
-                self.pipeline.retargeter = make_retargeter(new, self.pipeline.spec, self.pipeline.kinematics)
+            # the retargeting by directions also reads the safety section (self pairs, φ, ε, u_max) and θ̇'s low-pass
+            if (new.retargeting, new.safety, new.perception.angles) != (old.retargeting, old.safety, old.perception.angles):
+                self.pipeline.retargeter = make_retargeter(new, self.pipeline.spec, self.pipeline.retarget_kinematics)
         retargeter = self.pipeline.retargeter
         if retargeter is not old_retargeter:
             # Joints whose angles the new retargeter has not seen valid yet keep the current q_nom
@@ -359,8 +360,8 @@ class SafetyService(ScheduledService):
         self.pipeline.barrier.set_external(*self._memory.capsules(self.pipeline.pairs.n_external, use_velocity))
         if not stale:  # stale: the tick stops imitating (q_nom = q_cbf)
             retargeter = self.pipeline.retargeter
-            self._q_nom = retargeter(message.theta, message.theta_valid)
-            self._nominal.update(self._q_nom, retargeter.rate(message.theta_rate), message.stamp, received.received,
+            self._q_nom, dq_nom = retargeter.track(message)
+            self._nominal.update(self._q_nom, dq_nom, message.stamp, received.received,
                                  safety.extrapolate_max_s, retargeter.q_min, retargeter.q_max)
         self._human_used, self._human_stale, self._human_dirty = received, stale, False
         self.watchdogs.watch("human_lost", self._memory.lost, f"held: {', '.join(self._memory.lost_capsules)}")

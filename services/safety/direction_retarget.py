@@ -1,0 +1,241 @@
+"""Retargeting by arm directions: the robot's arms point where the person's do.
+
+The paper's map (eq. 2, :class:`~services.safety.retarget.Retargeter`) adds the person's angles to
+the robot's home pose joint by joint. On the G1 that leaves the arm 20–40° off the person's even
+with perfect tracking: its home holds the arms 22° out and the elbows bent, its shoulder axes are
+tilted against the torso, and its elbow stops 30° short of straight. This retargeter keeps eq. 2
+for the waist (roll, pitch) and solves the arms through the robot's own kinematics:
+
+    q_arm = argmin_{q_min ≤ q ≤ q_max} Σ_s ‖d_s(q) − p_s‖²,
+
+over the shoulder pitch, shoulder roll and elbow of each arm (the waist at its eq.-2 target, every
+other joint at the robot description's home), s the arm's upper arm and forearm, p_s the person's
+segment direction in the person's torso frame F_T and d_s(q) the robot's capsule axis in the
+robot's F_T (:mod:`shared.torso_frame`: the same definition the evaluator's direction error uses;
+facing the person the robot's left arm takes the person's right, reflected). A projected
+Levenberg–Marquardt iteration from the previous solution (the eq.-2 target at the start) solves it:
+
+    Δ = (JᵀJ + λ I)⁻¹ Jᵀ (p − d),   q ← Π_[q_min, q_max](q + Δ),
+
+J_s = R (I − û ûᵀ) (J_b − J_a) / ‖b − a‖ with û the capsule axis (a → b) in world axes, J_a, J_b
+its endpoints' point Jacobians and R the robot's F_T (held for the step). Warm-started, the
+solution moves continuously with the person (no jump between branches of the inverse) and takes
+1–3 iterations a state. Where the optimum itself leaps (the person's arm passes where the robot's
+cannot follow, e.g. a windmill past the shoulder's pitch stop, and the nearest solution moves to
+another branch) the target moves there at most at ``max_speed`` (the filter's velocity bound
+u_max): no faster than the robot may move, as the pose estimator spreads its branch switches.
+
+The target is a pose the robot can take: with ``body`` (the self-collision barriers the filter
+enforces, h = d − r_A − r_B − φ with the filter's φ) each step keeps every self pair the arms move
+at h ≥ ``clearance`` to first order,
+
+    min_Δ ½ Δᵀ(JᵀJ + λI)Δ − (Jᵀ(p − d))ᵀΔ   s.t.   ∇h_i Δ ≥ clearance − h_i,   q_min ≤ q + Δ ≤ q_max,
+
+a QP (the filter's backend, after the change of variables v = Lᵀ Δ with LLᵀ = JᵀJ + λI). Without
+it an arm hanging along the person's side would put the robot's arm into its own torso: the
+filter would stop it at its barrier, every step bound, and the arm's h would ride its margin.
+Where that QP has no solution (an arm already deeper than one step can undo) the iteration stops
+at the last pose: the filter's self rows still hold the robot. The clearance the stack uses is
+twice ``safety.self_margin`` ε (:func:`services.safety.assembly.make_retargeter`): a self row
+cannot bind while the robot settles onto a still target at h ≥ ε when γ ≥ K (it asks
+∇h u ≥ −γ(h − ε), tracking gives ∇h u ≈ −K(h − h_target) ≥ −K(h − ε)), and the factor 2 covers
+the first-order constraint's error over one iteration's step. A segment whose keypoints are invalid drops out of the sum; an arm whose
+upper arm is invalid keeps its last target (as eq. 2 keeps the last valid angle).
+
+The rate q̇_nom of an arm joint is the finite difference of its consecutive targets, low-passed
+like the person's θ̇ (``perception.angles.rate_cutoff_hz``, the contract of
+``HumanState.theta_rate``): the two retargetings' rates trail the person alike. It restarts from 0
+where the difference would span a gap: the arm not solved in the previous state, or the person's
+rates restarted (all of the arm's three θ̇ exactly 0: the perception's "not computable"). It is 0
+on a joint at its limit. The waist's rate is eq. 2's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from collections.abc import Sequence
+
+from services.safety.barriers.base import Barrier
+from services.safety.kinematics import RobotKinematics
+from services.safety.qp import QPBackend, QPProblem
+from services.safety.qp.base import INF_BOUND
+from services.safety.retarget import PoseLike, Retargeter, mirror_pose
+from shared.lowpass import lowpass_gain
+from shared.names import CAPSULE_NAMES
+from shared.torso_frame import ARM_SEGMENTS, person_arm_directions, robot_arm_rotation
+
+#: The imitation joints of each arm (IMITATION_JOINT_NAMES order): shoulder pitch, roll, elbow.
+ARM_JOINTS = (np.array([2, 3, 4]), np.array([5, 6, 7]))
+#: Each arm's (upper arm, forearm) rows of the (4, 3) direction arrays.
+_ARM_ROWS = (np.array([0, 1]), np.array([2, 3]))
+_CAPSULES = np.array([CAPSULE_NAMES.index(name) for name in ARM_SEGMENTS])
+#: Segments shorter than this give no direction (m).
+MIN_SEGMENT = 0.05
+#: Levenberg–Marquardt damping λ (dimensionless: residuals are unit-vector differences).
+DAMPING = 1e-4
+MAX_ITERATIONS = 20
+#: Stop once the largest joint step is below this (rad; 0.05 mm at the end of a 0.5 m arm).
+STEP_TOLERANCE = 1e-4
+
+
+class DirectionRetargeter:
+    """q_nom (8,) and q̇_nom (8,) from a human state by arm directions (module docstring).
+
+    ``linear`` is the waist's eq.-2 map (its mirror, calibration and limits are this retargeter's);
+    ``kinematics`` an instance only this retargeter calls (it overwrites its buffers);
+    ``rate_cutoff_hz`` the low-pass of the rates (Hz); ``body`` the self-collision barriers whose
+    h (with margin ``phi``, m) the target keeps ≥ ``clearance`` (m), solved by ``backend``;
+    ``max_speed`` (8,) rad/s the fastest an arm target moves between states (None: unbounded).
+    """
+
+    def __init__(self, linear: Retargeter, kinematics: RobotKinematics, rate_cutoff_hz: float,
+                 body: Sequence[Barrier] = (), phi: float = 0.0, clearance: float = 0.0,
+                 backend: QPBackend | None = None, max_speed: np.ndarray | None = None) -> None:
+        if body and backend is None:
+            raise ValueError("a body to keep clear of needs a QP backend")
+        self.linear = linear
+        self.kinematics = kinematics
+        self.rate_cutoff_hz = rate_cutoff_hz
+        self.body = tuple(body)
+        self.phi = phi
+        self.clearance = clearance
+        self.backend = backend
+        self.max_speed = None if max_speed is None else np.asarray(max_speed, dtype=np.float64)
+        self._q = linear.hold_value()
+        self._solved = np.zeros(2, bool)  # arm solved in the previous state
+        self._rate = np.zeros_like(self._q)
+        self._t: float | None = None
+
+    @property
+    def mirror(self) -> bool:
+        """Facing the person: the robot's left arm takes the person's right (and the waist mirrors)."""
+        return self.linear.mirror
+
+    @property
+    def q_min(self) -> np.ndarray:
+        return self.linear.q_min
+
+    @property
+    def q_max(self) -> np.ndarray:
+        return self.linear.q_max
+
+    def hold(self, q_nom: np.ndarray) -> None:
+        """Continue from ``q_nom`` (8,): the arms' next solve starts there; no rate across it."""
+        self.linear.hold(q_nom)
+        self._q = self.linear.hold_value()
+        self._solved[:] = False
+        self._rate[:] = 0.0
+
+    def calibrate(self, theta: np.ndarray) -> None:
+        """θ_home for the waist's eq. 2 (the arms need none: directions are absolute)."""
+        self.linear.calibrate(theta)
+
+    def track(self, pose: PoseLike) -> tuple[np.ndarray, np.ndarray]:
+        """(q_nom, q̇_nom) for ``pose`` (module docstring)."""
+        q_lin, dq_lin = self.linear.track(pose)
+        person = person_arm_directions(np.asarray(pose.keypoints, float), np.asarray(pose.keypoint_valid, bool),
+                                       self.mirror, MIN_SEGMENT)
+        q_prev = self._q.copy()
+        q = q_prev.copy()
+        q[:2] = q_lin[:2]
+        solved = np.array([bool(np.isfinite(person[rows[0]]).all()) for rows in _ARM_ROWS])
+        moving = np.concatenate([ARM_JOINTS[arm] for arm in range(2) if solved[arm]]) if solved.any() else None
+        if moving is not None:
+            q = self._solve(q, person, moving)
+            q = self._speed_limited(q, q_prev, float(pose.stamp), solved)
+        self._q = q
+        self._update_rates(pose, q, q_prev, solved)
+        dq = self._rate.copy()
+        dq[:2] = dq_lin[:2]
+        return q.copy(), dq
+
+    def _speed_limited(self, q: np.ndarray, q_prev: np.ndarray, t: float, solved: np.ndarray) -> np.ndarray:
+        """``q`` with each arm solved in this and the previous state moved from ``q_prev`` by at most
+        ``max_speed`` × the time between the states."""
+        if self.max_speed is None or self._t is None:
+            return q
+        reach = self.max_speed * max(t - self._t, 0.0)
+        for arm, joints in enumerate(ARM_JOINTS):
+            if solved[arm] and self._solved[arm]:
+                q[joints] = q_prev[joints] + np.clip(q[joints] - q_prev[joints], -reach[joints], reach[joints])
+        return q
+
+    def _solve(self, q: np.ndarray, person: np.ndarray, moving: np.ndarray) -> np.ndarray:
+        """Projected Levenberg–Marquardt on the joints ``moving`` (module docstring)."""
+        lo, hi = self.q_min[moving], self.q_max[moving]
+        rows = np.flatnonzero(np.isfinite(person).all(axis=1))
+        target = person[rows]
+        for _ in range(MAX_ITERATIONS):
+            residual, jacobian, endpoints, jacobians = self._directions(q, rows)
+            if residual is None:
+                break
+            error = (target - residual).reshape(-1)
+            j = jacobian.reshape(-1, len(q))[:, moving]
+            hessian, gradient = j.T @ j + DAMPING * np.eye(len(moving)), j.T @ error
+            step = np.linalg.solve(hessian, gradient)
+            if self.body:
+                step = self._clear_step(q, moving, step, hessian, gradient, endpoints, jacobians)
+                if step is None:
+                    break
+            new = np.clip(q[moving] + step, lo, hi)
+            change = float(np.max(np.abs(new - q[moving])))
+            q[moving] = new
+            if change < STEP_TOLERANCE:
+                break
+        return q
+
+    def _clear_step(self, q: np.ndarray, moving: np.ndarray, free_step: np.ndarray, hessian: np.ndarray,
+                    gradient: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray) -> np.ndarray | None:
+        """The step Δ of the QP in the module docstring (``free_step``, its unconstrained optimum,
+        where that satisfies every row and bound); None if it has no solution."""
+        blocks = [barrier.constraint_rows(q, endpoints, jacobians, 1.0, self.phi, 0.0, None) for barrier in self.body]
+        grad_h = np.concatenate([block.A for block in blocks])[:, moving]
+        h = np.concatenate([block.h for block in blocks])
+        keep = np.isfinite(h) & np.any(grad_h != 0.0, axis=1)
+        n = len(moving)
+        rows = np.concatenate([grad_h[keep], np.eye(n), -np.eye(n)])
+        bounds = np.concatenate([self.clearance - h[keep], self.q_min[moving] - q[moving], q[moving] - self.q_max[moving]])
+        if (rows @ free_step >= bounds).all():
+            return free_step
+        cholesky = np.linalg.cholesky(hessian)
+        inverse_t = np.linalg.inv(cholesky).T  # Δ = L⁻ᵀ v
+        problem = QPProblem(w=np.ones(n), u_ref=np.linalg.solve(cholesky, gradient), A=rows @ inverse_t, b=bounds,
+                            lower=np.full(n, -INF_BOUND), upper=np.full(n, INF_BOUND))
+        solution = self.backend.solve(problem)
+        return None if solution.u is None else inverse_t @ solution.u
+
+    def _directions(self, q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
+        """The robot's segment directions ``rows`` (k, 3) in its F_T at ``q`` and their Jacobians
+        (k, 3, 8), with the capsules' endpoints and Jacobians there; (None, …) if its torso frame
+        is degenerate."""
+        endpoints, jacobians = self.kinematics.compute(q)
+        rotation = robot_arm_rotation(endpoints, MIN_SEGMENT)
+        if rotation is None:
+            return None, jacobians, endpoints, jacobians
+        capsules = _CAPSULES[rows]
+        axis = endpoints[capsules, 1] - endpoints[capsules, 0]  # (k, 3) world
+        length = np.linalg.norm(axis, axis=1)
+        unit = axis / length[:, None]
+        projector = (np.eye(3) - unit[:, :, None] * unit[:, None, :]) / length[:, None, None]  # (k, 3, 3)
+        d_axis = jacobians[capsules, 1] - jacobians[capsules, 0]  # (k, 3, 8)
+        jacobian = np.einsum("ij,kjl,klm->kim", rotation, projector, d_axis)
+        return unit @ rotation.T, jacobian, endpoints, jacobians
+
+    def _update_rates(self, pose: PoseLike, q: np.ndarray, q_prev: np.ndarray, solved: np.ndarray) -> None:
+        t = float(pose.stamp)
+        dt = 0.0 if self._t is None else t - self._t
+        person_rates = np.asarray(pose.theta_rate, float)
+        if self.mirror:
+            person_rates = mirror_pose(person_rates)
+        for arm, joints in enumerate(ARM_JOINTS):
+            restarted = not (person_rates[joints] != 0.0).any()
+            if solved[arm] and self._solved[arm] and dt > 0.0 and not restarted:
+                self._rate[joints] += lowpass_gain(dt, self.rate_cutoff_hz) * ((q[joints] - q_prev[joints]) / dt
+                                                                              - self._rate[joints])
+            else:
+                self._rate[joints] = 0.0
+        at_limit = (q <= self.q_min) | (q >= self.q_max)
+        self._rate[at_limit] = 0.0
+        self._solved = solved
+        self._t = t
