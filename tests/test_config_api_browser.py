@@ -81,6 +81,8 @@ def test_console_loads_with_the_current_parameters(page, browser_context, consol
     accel = [float(page.locator(f"#safety-form input[name='accel_max.{i}']").input_value()) for i in range(8)]
     assert accel == safety["accel_max"]
     assert page.locator("#pair-groups input:checked").count() == len(safety["enabled_pair_groups"])
+    method = console.http.get("/api/config").json()["retarget"]["method"]
+    assert page.locator("#retarget-form select[name=method]").input_value() == method
 
 
 def test_console_shows_live_data(page, bus: Bus) -> None:  # noqa: F811
@@ -125,6 +127,14 @@ def test_changing_gamma_in_the_form_reaches_the_config(page, console: ApiServer,
         sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
     assert console.http.get("/api/config").json()["safety"]["accel_max"] == [*before["safety"]["accel_max"][:2], 45.0,
                                                                              *before["safety"]["accel_max"][3:]]
+
+    with FakeSafety(bus):  # the retargeting method: only it is sent
+        page.select_option("#retarget-form select[name=method]", "linear")
+        page.click("#apply-retarget")
+        sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
+    history = console.http.get("/api/config/history").json()["entries"][0]
+    assert console.http.get("/api/config").json()["retarget"]["method"] == "linear"
+    assert "retargeting.method" in str(history) and "retargeting.scale" not in str(history)
 
     page.fill("#safety-form input[name=phi]", "7")  # out of range: the API's 422 names the field
     page.click("#apply-safety")

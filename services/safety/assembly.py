@@ -51,6 +51,7 @@ class SafetyPipeline:
             filt.step(q, dt)
         filt.compile_boxes(dt)
         filt.reset(q)
+        self.retargeter.warm_up()
 
 
 def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinematics) -> Retargeter | DirectionRetargeter:
@@ -75,7 +76,7 @@ def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinemat
     body = [CapsuleBarrier(self_pairs, robot_radii(conf, kinematics), len(kinematics.joint_names)),
             make_static_barrier(conf, kinematics)]
     return DirectionRetargeter(linear, kinematics, conf.perception.angles.rate_cutoff_hz, body, conf.safety.phi,
-                               2.0 * conf.safety.self_margin, make_backend(conf.safety.backend.value),
+                               conf.safety.phi, make_backend(conf.safety.backend.value),
                                np.minimum(conf.safety.u_max, np.abs(conf.safety.u_min or conf.safety.u_max)))
 
 

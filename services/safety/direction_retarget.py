@@ -19,8 +19,10 @@ Levenberg–Marquardt iteration from the previous solution (the eq.-2 target at 
 
 J_s = R (I − û ûᵀ) (J_b − J_a) / ‖b − a‖ with û the capsule axis (a → b) in world axes, J_a, J_b
 its endpoints' point Jacobians and R the robot's F_T (held for the step). Warm-started, the
-solution moves continuously with the person (no jump between branches of the inverse) and takes
-1–3 iterations a state. Where the optimum itself leaps (the person's arm passes where the robot's
+solution moves continuously with the person (no jump between branches of the inverse); at most
+:data:`MAX_ITERATIONS` a state, a target not converged continues at the next. A segment whose
+keypoints are invalid drops out of the sum; an arm whose upper arm is invalid keeps its last
+target (as eq. 2 keeps the last valid angle). Where the optimum itself leaps (the person's arm passes where the robot's
 cannot follow, e.g. a windmill past the shoulder's pitch stop, and the nearest solution moves to
 another branch) the target moves there at most at ``max_speed`` (the filter's velocity bound
 u_max): no faster than the robot may move, as the pose estimator spreads its branch switches.
@@ -36,11 +38,11 @@ it an arm hanging along the person's side would put the robot's arm into its own
 filter would stop it at its barrier, every step bound, and the arm's h would ride its margin.
 Where that QP has no solution (an arm already deeper than one step can undo) the iteration stops
 at the last pose: the filter's self rows still hold the robot. The clearance the stack uses is
-twice ``safety.self_margin`` ε (:func:`services.safety.assembly.make_retargeter`): a self row
-cannot bind while the robot settles onto a still target at h ≥ ε when γ ≥ K (it asks
-∇h u ≥ −γ(h − ε), tracking gives ∇h u ≈ −K(h − h_target) ≥ −K(h − ε)), and the factor 2 covers
-the first-order constraint's error over one iteration's step. A segment whose keypoints are invalid drops out of the sum; an arm whose
-upper arm is invalid keeps its last target (as eq. 2 keeps the last valid angle).
+the barrier's own margin φ (:func:`services.safety.assembly.make_retargeter`): the target sits as
+far inside the safe set as the barrier sits from contact, so a tracking error or a push (a person
+leaning on the arm) of up to φ at the surface still leaves the robot clear of itself; and a self
+row cannot bind while the robot settles onto a still target at h ≥ ε (the self margin) when
+γ ≥ K: the row asks ∇h u ≥ −γ(h − ε), tracking gives ∇h u ≈ −K(h − h_target) ≥ −K(h − ε).
 
 The rate q̇_nom of an arm joint is the finite difference of its consecutive targets, low-passed
 like the person's θ̇ (``perception.angles.rate_cutoff_hz``, the contract of
@@ -52,17 +54,17 @@ on a joint at its limit. The waist's rate is eq. 2's.
 
 from __future__ import annotations
 
-import numpy as np
-
 from collections.abc import Sequence
+
+import numpy as np
 
 from services.safety.barriers.base import Barrier
 from services.safety.kinematics import RobotKinematics
 from services.safety.qp import QPBackend, QPProblem
 from services.safety.qp.base import INF_BOUND
-from services.safety.retarget import PoseLike, Retargeter, mirror_pose
+from services.safety.retarget import Pose, PoseLike, Retargeter, mirror_pose
 from shared.lowpass import lowpass_gain
-from shared.names import CAPSULE_NAMES
+from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX, KEYPOINT_NAMES
 from shared.torso_frame import ARM_SEGMENTS, person_arm_directions, robot_arm_rotation
 
 #: The imitation joints of each arm (IMITATION_JOINT_NAMES order): shoulder pitch, roll, elbow.
@@ -74,7 +76,9 @@ _CAPSULES = np.array([CAPSULE_NAMES.index(name) for name in ARM_SEGMENTS])
 MIN_SEGMENT = 0.05
 #: Levenberg–Marquardt damping λ (dimensionless: residuals are unit-vector differences).
 DAMPING = 1e-4
-MAX_ITERATIONS = 20
+#: Iterations per state, at most: a budget inside the control tick (≈ 0.1–0.2 ms each here); a
+#: target not converged within it continues from there at the next state (30 Hz: a frame later).
+MAX_ITERATIONS = 4
 #: Stop once the largest joint step is below this (rad; 0.05 mm at the end of a 0.5 m arm).
 STEP_TOLERANCE = 1e-4
 
@@ -131,6 +135,26 @@ class DirectionRetargeter:
         """θ_home for the waist's eq. 2 (the arms need none: directions are absolute)."""
         self.linear.calibrate(theta)
 
+    def warm_up(self) -> None:
+        """One throw-away solve of the robot's own arms at its held target, state restored after: the
+        first call pays one-time setup (≈ 7 ms measured here) that must not fall inside a tick."""
+        saved = (self._q.copy(), self._solved.copy(), self._rate.copy(), self._t)
+        q = self.linear.hold_value()
+        ends = self.kinematics.compute(q)[0]
+        c = {name: i for i, name in enumerate(CAPSULE_NAMES)}
+        points, valid = np.zeros((len(KEYPOINT_NAMES), 3)), np.zeros(len(KEYPOINT_NAMES), bool)
+        points[KEYPOINT_INDEX["pelvis"]] = ends[c["torso"], 0]
+        for side in ("left", "right"):
+            upper, fore = ends[c[f"{side}_upper_arm"]], ends[c[f"{side}_forearm"]]
+            for joint, point in (("shoulder", upper[0]), ("elbow", upper[1]), ("wrist", upper[1] + fore[1] - fore[0])):
+                points[KEYPOINT_INDEX[f"{side}_{joint}"]] = point
+        valid[[KEYPOINT_INDEX[n] for n in ("pelvis", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+                                           "left_wrist", "right_wrist")]] = True
+        self.track(Pose(np.zeros(len(q)), np.zeros(len(q), bool), np.zeros(len(q)), points, valid, 0.0))
+        if self.body:
+            self._clear_step(q, ARM_JOINTS[0], np.full(3, -1.0), np.eye(3), np.zeros(3), *self.kinematics.compute(q))
+        self._q, self._solved, self._rate, self._t = saved
+
     def track(self, pose: PoseLike) -> tuple[np.ndarray, np.ndarray]:
         """(q_nom, q̇_nom) for ``pose`` (module docstring)."""
         q_lin, dq_lin = self.linear.track(pose)
@@ -173,7 +197,7 @@ class DirectionRetargeter:
             error = (target - residual).reshape(-1)
             j = jacobian.reshape(-1, len(q))[:, moving]
             hessian, gradient = j.T @ j + DAMPING * np.eye(len(moving)), j.T @ error
-            step = np.linalg.solve(hessian, gradient)
+            step = np.clip(np.linalg.solve(hessian, gradient), lo - q[moving], hi - q[moving])
             if self.body:
                 step = self._clear_step(q, moving, step, hessian, gradient, endpoints, jacobians)
                 if step is None:
@@ -187,8 +211,8 @@ class DirectionRetargeter:
 
     def _clear_step(self, q: np.ndarray, moving: np.ndarray, free_step: np.ndarray, hessian: np.ndarray,
                     gradient: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray) -> np.ndarray | None:
-        """The step Δ of the QP in the module docstring (``free_step``, its unconstrained optimum,
-        where that satisfies every row and bound); None if it has no solution."""
+        """The step Δ of the QP in the module docstring (``free_step``, the unconstrained optimum
+        clipped to the joint ranges, where that keeps every self row); None if it has no solution."""
         blocks = [barrier.constraint_rows(q, endpoints, jacobians, 1.0, self.phi, 0.0, None) for barrier in self.body]
         grad_h = np.concatenate([block.A for block in blocks])[:, moving]
         h = np.concatenate([block.h for block in blocks])
@@ -196,7 +220,7 @@ class DirectionRetargeter:
         n = len(moving)
         rows = np.concatenate([grad_h[keep], np.eye(n), -np.eye(n)])
         bounds = np.concatenate([self.clearance - h[keep], self.q_min[moving] - q[moving], q[moving] - self.q_max[moving]])
-        if (rows @ free_step >= bounds).all():
+        if (grad_h[keep] @ free_step >= self.clearance - h[keep]).all():
             return free_step
         cholesky = np.linalg.cholesky(hessian)
         inverse_t = np.linalg.inv(cholesky).T  # Δ = L⁻ᵀ v

@@ -104,6 +104,9 @@ class Retargeter:
         """(q_nom, q̇_nom) for ``pose``: :meth:`__call__` and :meth:`rate` of its angles."""
         return self(pose.theta, pose.theta_valid), self.rate(pose.theta_rate)
 
+    def warm_up(self) -> None:
+        """Nothing to prepare (the interface of the retargeters)."""
+
     def hold_value(self) -> np.ndarray:
         """The q_nom (8,) this retargeter holds where it has no valid angle (a copy)."""
         return self._last.copy()

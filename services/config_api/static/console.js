@@ -127,6 +127,7 @@ function fillForms() {
   vectorRow(rv, "q_home", "q_home", r.q_home);
   vectorRow(rv, "theta_home", "θ_home", r.theta_home);
   $("retarget-form").elements.mirror.checked = r.mirror;
+  $("retarget-form").elements.method.value = r.method;
   dirty = false;
 }
 
@@ -176,6 +177,7 @@ function retargetPatch() {
     if (!same(value, r[name])) patch[name] = value;
   }
   if (f.elements.mirror.checked !== r.mirror) patch.mirror = f.elements.mirror.checked;
+  if (f.elements.method.value !== r.method) patch.method = f.elements.method.value;
   return patch;
 }
 
