@@ -1,7 +1,7 @@
 """Imitation fidelity: how well the simulated robot follows the true person (the paper's future work).
 
-Against ``q_true`` (the retargeted angles of the true skeleton: same estimator, calibration and
-mirror as the stack) and the simulated joints q_sim, per run, over the *judged steps*: from
+Against ``q_true`` (the true skeleton retargeted as the stack retargets: same estimator,
+calibration, mirror and retargeting method) and the simulated joints q_sim, per run, over the *judged steps*: from
 :data:`ACQUIRE_S` after the first perceived state to the end (before, the robot is still moving from
 its home pose to the person's first pose, which says nothing of how it follows a motion):
 
@@ -21,7 +21,7 @@ its home pose to the person's first pose, which says nothing of how it follows a
   flipped). Percentiles over every (step, segment) sample with both directions defined;
 - ``direction_error_deg_p50_at_target`` / ``_p95_at_target``: the same with the robot placed
   exactly at ``q_true`` (perfect tracking), over the same samples: the share of the direction error
-  that the retargeting (paper eq. 2: q_home + S (θ − θ_home), clipped to the joint ranges) and the
+  that the retargeting (``retargeting.method``: by directions, or the paper's eq. 2) and the
   robot's kinematics leave, which no controller can remove;
 - ``judged_from_s``: where the judged steps begin (s; null: no perceived state).
 """

@@ -217,11 +217,11 @@ class DirectionRetargeter:
         grad_h = np.concatenate([block.A for block in blocks])[:, moving]
         h = np.concatenate([block.h for block in blocks])
         keep = np.isfinite(h) & np.any(grad_h != 0.0, axis=1)
+        if (grad_h[keep] @ free_step >= self.clearance - h[keep]).all():
+            return free_step
         n = len(moving)
         rows = np.concatenate([grad_h[keep], np.eye(n), -np.eye(n)])
         bounds = np.concatenate([self.clearance - h[keep], self.q_min[moving] - q[moving], q[moving] - self.q_max[moving]])
-        if (grad_h[keep] @ free_step >= self.clearance - h[keep]).all():
-            return free_step
         cholesky = np.linalg.cholesky(hessian)
         inverse_t = np.linalg.inv(cholesky).T  # Δ = L⁻ᵀ v
         problem = QPProblem(w=np.ones(n), u_ref=np.linalg.solve(cholesky, gradient), A=rows @ inverse_t, b=bounds,
@@ -243,7 +243,7 @@ class DirectionRetargeter:
         unit = axis / length[:, None]
         projector = (np.eye(3) - unit[:, :, None] * unit[:, None, :]) / length[:, None, None]  # (k, 3, 3)
         d_axis = jacobians[capsules, 1] - jacobians[capsules, 0]  # (k, 3, 8)
-        jacobian = np.einsum("ij,kjl,klm->kim", rotation, projector, d_axis)
+        jacobian = rotation @ (projector @ d_axis)
         return unit @ rotation.T, jacobian, endpoints, jacobians
 
     def _update_rates(self, pose: PoseLike, q: np.ndarray, q_prev: np.ndarray, solved: np.ndarray) -> None:
