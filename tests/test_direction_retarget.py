@@ -99,7 +99,7 @@ def test_a_pose_the_robot_can_take_is_reproduced_exactly() -> None:
 def test_the_target_keeps_clear_of_the_robots_own_body() -> None:
     """Arms hanging straight down, a little inwards: the robot's arm cannot point there without
     entering its torso or pelvis. Without the body the target does (some self h < 0); with it every
-    self pair keeps h ≥ the clearance, and the arms still point down within 30°."""
+    self pair keeps h ≥ the clearance (φ), and the arms still point down within 40°."""
     inward = np.array([[0.15, 0.0, -1.0], [0.1, 0.1, -1.0]])  # left arm: +x is the person's right
     points, valid = skeleton((inward[0], inward[1]), (inward[0] * [-1, 1, 1], inward[1] * [-1, 1, 1]))
     free = retargeter()
@@ -110,7 +110,7 @@ def test_the_target_keeps_clear_of_the_robots_own_body() -> None:
         q_clear = clear.track(pose(points, valid, k / FPS))[0]
     assert self_h(free, q_free, clear.body).min() < 0.0
     assert self_h(clear, q_clear).min() >= clear.clearance - 1e-3
-    assert errors_deg(clear, q_clear, points, valid, False).max() < 30
+    assert errors_deg(clear, q_clear, points, valid, False).max() < 40
 
 
 @pytest.mark.parametrize("mirror", [False, True])
