@@ -175,3 +175,39 @@ def test_rates_are_the_low_passed_difference_and_restart_with_the_persons() -> N
     points, valid = skeleton((d, d), (DOWN, DOWN))
     _, dq = r.track(pose(points, valid, 40 / FPS, rate=0.0))
     np.testing.assert_array_equal(dq, 0.0)
+
+
+def test_the_compiled_normal_equations_match_finite_differences() -> None:
+    """JᵀJ + λI and Jᵀ(p − d) of the kernel against J by central differences of d(q) = R û(q) (the
+    robot's torso frame R held at q, as the kernel holds it), at random poses and targets."""
+    from services.safety.direction_kernel import direction_normal_equations
+    from shared.names import CAPSULE_NAMES
+    from shared.torso_frame import ARM_SEGMENTS, robot_arm_rotation
+
+    kin = RobotKinematics(retargeter().kinematics.spec)
+    rng = np.random.default_rng(7)
+    capsules = np.array([CAPSULE_NAMES.index(name) for name in ARM_SEGMENTS])
+    frame = np.array([CAPSULE_NAMES.index(name) for name in ("torso", "left_upper_arm", "right_upper_arm")])
+    moving = np.arange(2, 8)
+    for _ in range(20):
+        q = rng.uniform(kin.q_min, kin.q_max)
+        ends = kin.compute(q)[0].copy()
+        rotation = robot_arm_rotation(ends, 0.05)
+
+        def directions(x: np.ndarray) -> np.ndarray:
+            e = kin.compute(x)[0]
+            axis = e[capsules, 1] - e[capsules, 0]
+            return (axis / np.linalg.norm(axis, axis=1, keepdims=True)) @ rotation.T
+
+        jac = np.zeros((12, 6))
+        for j, joint in enumerate(moving):
+            step = np.zeros(8)
+            step[joint] = 1e-6
+            jac[:, j] = ((directions(q + step) - directions(q - step)) / 2e-6).reshape(-1)
+        targets = rng.normal(size=(4, 3))
+        targets /= np.linalg.norm(targets, axis=1, keepdims=True)
+        hessian, gradient = np.empty((6, 6)), np.empty(6)
+        ends, jacobians = kin.compute(q)
+        assert direction_normal_equations(ends, jacobians, frame, capsules, targets, moving, 0.5, 0.05, hessian, gradient)
+        np.testing.assert_allclose(hessian, jac.T @ jac + 0.5 * np.eye(6), atol=1e-6)
+        np.testing.assert_allclose(gradient, jac.T @ (targets - directions(q)).reshape(-1), atol=1e-6)
