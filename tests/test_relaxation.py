@@ -116,6 +116,37 @@ def test_the_relaxed_problem_is_feasible_by_construction_and_least_violating() -
     assert checked >= 10
 
 
+def test_a_person_giving_way_stops_the_imitation_the_retreat_does_not_need() -> None:
+    """Protective stop: while a person row gives way (the person moves into the left forearm faster
+    than it can retreat), the freedom the rows leave is not spent imitating: the right arm, which
+    the imitation pulls anywhere and no binding row needs, brakes to rest (after a reset the box
+    holds 0, so u = 0 there) instead of following u_ref. Without the self margin, which lets a hard
+    row inside it push out (:func:`test_self_rows_aim_the_margin_beyond_phi`), so that the rows at
+    their bound are those of ``stacked``."""
+    p = pipeline_for(self_margin=0.0)
+    rng = np.random.default_rng(17)
+    names = p.kinematics.joint_names
+    right = [names.index(f"right_{j}_joint") for j in ("shoulder_pitch", "shoulder_roll", "elbow")]
+    checked = 0
+    for _ in range(60):
+        q = random_intrusion(p, rng)
+        A, b, soft = stacked(p, q)
+        p.filter.reset(q)
+        q_nom = q.copy()
+        q_nom[right] = rng.uniform(p.kinematics.q_min, p.kinematics.q_max)[right]
+        result = p.filter.step(q_nom, DT)
+        if result.mode is not SafetyMode.RELAXED or not result.relaxed.any():
+            continue
+        binding = A @ result.u - b <= 1e-6  # at their bound or given way
+        if np.abs(A[binding][:, right]).max() > 1e-9 or np.abs(result.u_ref[right]).max() < 0.1:
+            continue  # a row needs the right arm, or the imitation does not ask it to move
+        lhs = A @ result.u
+        assert (lhs[~soft] >= b[~soft] - 1e-6).all() and (lhs[soft] >= np.minimum(b[soft], 0.0) - 1e-6).all()
+        np.testing.assert_allclose(result.u[right], 0.0, atol=1e-6)
+        checked += 1
+    assert checked >= 5
+
+
 def _slide_into_the_torso(margin: float) -> tuple[float, set[str]]:
     """The left arm driven through the torso (imitation pulling across the body) for 2 s from home,
     no person: the smallest self h the filter held (m) and every name that gave way."""
