@@ -174,7 +174,7 @@ def track(conf: StackConfig, human: HumanTrack, seconds: float | None = None, le
             capsules = external_capsules(state, n_external, use_velocity)
             barrier.set_external(*capsules)
             reference.set_external(*capsules)
-            q_nom = pipeline.retargeter(state.theta, state.theta_valid)
+            q_nom = pipeline.retargeter.track(state)[0]
             applied = newest
         endpoints, jacobians = kin.compute(safety_filter.q_cbf)
         out.h_capsule[i] = reference.evaluate(endpoints, jacobians, gamma, phi).min_h_all

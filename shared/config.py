@@ -134,10 +134,11 @@ class RetargetingConfig(_Section):
     arms instead by their segments' directions (services.safety.direction_retarget)."""
 
     method: RetargetMethod = Field(
-        default=RetargetMethod.DIRECTIONS,
-        description="linear: paper eq. 2 on every joint; directions: eq. 2 for the waist, the arms solved through the "
-        "robot's kinematics so that its upper arms and forearms point where the person's do (S, b, θ_home, q_home then "
-        "apply to the waist only)",
+        default=RetargetMethod.LINEAR,
+        description="linear: paper eq. 2 on every joint (the default: it keeps the paper's scenarios inside the "
+        "barriers); directions: eq. 2 for the waist, the arms solved through the robot's kinematics so that its upper "
+        "arms and forearms point where the person's do (S, b, θ_home, q_home then apply to the waist only): far closer "
+        "imitation, but on the G1 its arms reach further toward a person (README, 'The development set')",
     )
 
     scale: JointVector = Field(default_factory=lambda: [1.0] * N_JOINTS)

@@ -160,7 +160,7 @@ def test_pair_groups_radii_and_home_from_config() -> None:
     base = build_pipeline(load_config(environ={}))
     conf = load_config(environ={}, overrides={
         "safety": {"enabled_pair_groups": ["self_torso", "human"], "capsule_radii": {"left_forearm": 0.09}},
-        "retargeting": {"q_home": [0.0, 0.1, 0.0, 0.3, 1.0, 0.0, -0.3, 1.0]},
+        "retargeting": {"q_home": [0.0, 0.1, 0.0, 0.3, 1.0, 0.0, -0.3, 1.0], "method": "linear"},
     })
     p = build_pipeline(conf)
     names = set(p.pairs.names)

@@ -385,7 +385,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
 
 def test_retarget_fields_map_onto_the_config(api: ApiServer) -> None:
     patch = {"S": [1.0, 1.0, 0.8, 0.8, 1.0, 0.8, 0.8, 1.0], "b": [0.0, 0.05, 0, 0, 0, 0, 0, 0],
-             "q_home": [0.0, 0.0, 0.2, 0.3, 1.2, 0.2, -0.3, 1.2], "mirror": True, "method": "linear"}
+             "q_home": [0.0, 0.0, 0.2, 0.3, 1.2, 0.2, -0.3, 1.2], "mirror": True, "method": "directions"}
     result = api.http.patch("/api/config/retarget", json=patch, headers=AUTH).json()
     assert sorted(result["changed"]) == ["retargeting.method", "retargeting.mirror", "retargeting.offset", "retargeting.q_home",
                                          "retargeting.scale"]

@@ -129,11 +129,11 @@ def test_changing_gamma_in_the_form_reaches_the_config(page, console: ApiServer,
                                                                              *before["safety"]["accel_max"][3:]]
 
     with FakeSafety(bus):  # the retargeting method: only it is sent
-        page.select_option("#retarget-form select[name=method]", "linear")
+        page.select_option("#retarget-form select[name=method]", "directions")
         page.click("#apply-retarget")
         sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
     history = console.http.get("/api/config/history").json()["entries"][0]
-    assert console.http.get("/api/config").json()["retarget"]["method"] == "linear"
+    assert console.http.get("/api/config").json()["retarget"]["method"] == "directions"
     assert "retargeting.method" in str(history) and "retargeting.scale" not in str(history)
 
     page.fill("#safety-form input[name=phi]", "7")  # out of range: the API's 422 names the field

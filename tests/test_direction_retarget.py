@@ -66,7 +66,7 @@ def self_h(r: DirectionRetargeter, q: np.ndarray, body=None) -> np.ndarray:
 
 def test_the_method_is_configured() -> None:
     assert isinstance(build_pipeline(conf_with(method="linear")).retargeter, Retargeter)
-    assert isinstance(build_pipeline(load_config(environ={})).retargeter, DirectionRetargeter)  # the default
+    assert isinstance(build_pipeline(load_config(environ={})).retargeter, Retargeter)  # the default: paper eq. 2
 
 
 def test_a_pose_the_robot_can_take_is_reproduced_exactly() -> None:

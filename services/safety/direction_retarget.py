@@ -6,16 +6,21 @@ with perfect tracking: its home holds the arms 22° out and the elbows bent, its
 tilted against the torso, and its elbow stops 30° short of straight. This retargeter keeps eq. 2
 for the waist (roll, pitch) and solves the arms through the robot's own kinematics:
 
-    q_arm = argmin_{q_min ≤ q ≤ q_max} Σ_s ‖d_s(q) − p_s‖²,
+    q_arm = argmin_{q_min ≤ q ≤ q_max} Σ_s ‖d_s(q) − p_s‖² + μ ‖q − q_prev‖²,
 
 over the shoulder pitch, shoulder roll and elbow of each arm (the waist at its eq.-2 target, every
 other joint at the robot description's home), s the arm's upper arm and forearm, p_s the person's
 segment direction in the person's torso frame F_T and d_s(q) the robot's capsule axis in the
 robot's F_T (:mod:`shared.torso_frame`: the same definition the evaluator's direction error uses;
-facing the person the robot's left arm takes the person's right, reflected). A projected
+facing the person the robot's left arm takes the person's right, reflected), q_prev the previous
+state's target and μ = :data:`ANCHOR` a small anchor: where a joint does not move the segments (an
+arm held straight out sideways: its shoulder pitch turns it about its own axis) the directions
+leave it undetermined, and without the anchor the slightest noise of the person's forearm swung
+it at the velocity bound; where the directions do determine a joint (curvature σ² ≈ 0.3–1 per
+rad²) the anchor holds the target back by μ/(σ² + μ), 1–3 % of one state's motion. A projected
 Levenberg–Marquardt iteration from the previous solution (the eq.-2 target at the start) solves it:
 
-    Δ = (JᵀJ + λ I)⁻¹ Jᵀ (p − d),   q ← Π_[q_min, q_max](q + Δ),
+    Δ = (JᵀJ + (λ + μ) I)⁻¹ (Jᵀ (p − d) − μ (q − q_prev)),   q ← Π_[q_min, q_max](q + Δ),
 
 J_s = R (I − û ûᵀ) (J_b − J_a) / ‖b − a‖ with û the capsule axis (a → b) in world axes, J_a, J_b
 its endpoints' point Jacobians and R the robot's F_T (held for the step). Warm-started, the
@@ -31,9 +36,9 @@ The target is a pose the robot can take: with ``body`` (the self-collision barri
 enforces, h = d − r_A − r_B − φ with the filter's φ) each step keeps every self pair the arms move
 at h ≥ ``clearance`` to first order,
 
-    min_Δ ½ Δᵀ(JᵀJ + λI)Δ − (Jᵀ(p − d))ᵀΔ   s.t.   ∇h_i Δ ≥ clearance − h_i,
+    min_Δ ½ Δᵀ(JᵀJ + (λ + μ)I)Δ − (Jᵀ(p − d) − μ(q − q_prev))ᵀΔ   s.t.   ∇h_i Δ ≥ clearance − h_i,
 
-a QP (the filter's backend, after the change of variables v = Lᵀ Δ with LLᵀ = JᵀJ + λI), its step
+a QP (the filter's backend, after the change of variables v = Lᵀ Δ with LLᵀ = JᵀJ + (λ + μ)I), its step
 projected onto the joint ranges like the unconstrained one (the next iteration corrects what the
 projection costs a row). Without
 it an arm hanging along the person's side would put the robot's arm into its own torso: the
@@ -81,6 +86,8 @@ _FRAME = np.array([CAPSULE_NAMES.index(name) for name in ("torso", "left_upper_a
 MIN_SEGMENT = 0.05
 #: Levenberg–Marquardt damping λ (dimensionless: residuals are unit-vector differences).
 DAMPING = 1e-4
+#: μ of the anchor to the previous state's target (module docstring; per rad², against unit-vector residuals).
+ANCHOR = 1e-2
 #: Iterations per state, at most: a budget inside the control tick (≈ 0.1 ms each here); a target
 #: not converged within it continues from there at the next state. Measured on the development
 #: clips at 30 Hz: 2 iterations leave the direction error where 20 do (p50 3.9 / 11.2°, p95
@@ -201,11 +208,13 @@ class DirectionRetargeter:
         rows = np.flatnonzero(np.isfinite(person).all(axis=1))
         capsules, target = _CAPSULES[rows], np.ascontiguousarray(person[rows])
         hessian, gradient = np.empty((len(moving), len(moving))), np.empty(len(moving))
+        anchor = q[moving].copy()
         for _ in range(MAX_ITERATIONS):
             endpoints, jacobians = self.kinematics.compute(q)
-            if not direction_normal_equations(endpoints, jacobians, _FRAME, capsules, target, moving, DAMPING,
+            if not direction_normal_equations(endpoints, jacobians, _FRAME, capsules, target, moving, DAMPING + ANCHOR,
                                               MIN_SEGMENT, hessian, gradient):
                 break
+            gradient -= ANCHOR * (q[moving] - anchor)
             step = np.clip(np.linalg.solve(hessian, gradient), lo - q[moving], hi - q[moving])
             if self.body:
                 step = self._clear_step(q, moving, step, hessian, gradient, endpoints, jacobians)
