@@ -565,3 +565,23 @@ def test_realtime_scheduling_is_entered_or_refused_cleanly() -> None:
     assert seen["during"] == expected and seen["after"] == os.SCHED_OTHER
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # only the calling thread was affected
     assert enter_realtime(0) == "normal scheduling"
+
+
+def test_the_retargeting_by_directions_follows_the_persons_skeleton(service: SafetyService) -> None:
+    """Switched on by a config update: q_nom comes from the state's keypoints (the arm raised
+    forward points the robot's left arm forward), and a later change of φ reaches its clearance."""
+    from services.safety.direction_retarget import DirectionRetargeter
+
+    full = load_config(environ={}, overrides={"retargeting": {"method": "directions"}}).model_dump(mode="json")
+    service.on_config(ConfigUpdate(stamp=0.0, version=2, config=full))
+    service.tick()
+    assert isinstance(service.pipeline.retargeter, DirectionRetargeter)
+    state = human_state(arm_forward(), person(2.0)[1])
+    for k in range(30):  # a second of the same pose: the target converges at 2 iterations a state
+        service.human.set(state.model_copy(update={"stamp": state.stamp + k / 30, "seq": k}))
+        service.tick(service.human.get().received + 0.001)
+    assert service._q_nom[2] < -1.2  # G1 shoulder pitch is negative forward
+    full["safety"]["phi"] = 0.03
+    service.on_config(ConfigUpdate(stamp=0.0, version=3, config=full))
+    service.tick()
+    assert service.pipeline.retargeter.clearance == 0.03 and service.pipeline.retargeter.phi == 0.03

@@ -67,6 +67,7 @@ import numpy as np
 
 from services.safety.barriers.base import Barrier
 from services.safety.direction_kernel import direction_normal_equations
+from services.safety.errors import SafetyConfigError
 from services.safety.kinematics import RobotKinematics
 from services.safety.qp import QPBackend, QPProblem
 from services.safety.qp.base import INF_BOUND
@@ -111,7 +112,7 @@ class DirectionRetargeter:
                  body: Sequence[Barrier] = (), phi: float = 0.0, clearance: float = 0.0,
                  backend: QPBackend | None = None, max_speed: np.ndarray | None = None) -> None:
         if body and backend is None:
-            raise ValueError("a body to keep clear of needs a QP backend")
+            raise SafetyConfigError("a body to keep clear of needs a QP backend")
         self.linear = linear
         self.kinematics = kinematics
         self.rate_cutoff_hz = rate_cutoff_hz

@@ -60,7 +60,7 @@ from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
 from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, StackConfig, validate_config
+from shared.config import ConfigError, RetargetMethod, StackConfig, validate_config
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
 from shared.stop_signals import stop_on_signals
 
@@ -296,8 +296,10 @@ class SafetyService(ScheduledService):
             self.pipeline.filter.reset(q_cbf)
         else:
             self.pipeline.filter.params = FilterParams.from_config(new.safety)
-            # the retargeting by directions also reads the safety section (self pairs, φ, ε, u_max) and θ̇'s low-pass
-            if (new.retargeting, new.safety, new.perception.angles) != (old.retargeting, old.safety, old.perception.angles):
+            # the retargeting by directions also reads the safety section (self pairs, φ, u_max) and θ̇'s low-pass
+            by_directions = new.retargeting.method is RetargetMethod.DIRECTIONS
+            if new.retargeting != old.retargeting or by_directions and (
+                    (new.safety, new.perception.angles) != (old.safety, old.perception.angles)):
                 self.pipeline.retargeter = make_retargeter(new, self.pipeline.spec, self.pipeline.retarget_kinematics)
         retargeter = self.pipeline.retargeter
         if retargeter is not old_retargeter:
