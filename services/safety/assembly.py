@@ -11,11 +11,11 @@ from services.safety.filter import FilterParams, SafetyFilter
 from services.safety.barriers.pairs import CollisionGeometry
 from services.safety.barriers.spheres import SphereBarrier, nominal_human
 from services.safety.barriers.static import StaticCapsuleBarrier
+from services.safety.direction_retarget import DirectionRetargeter
 from services.safety.human_memory import external_capsules
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import N_ROBOT, PairSet, make_pair_set, preset_pair_set, select_groups
 from services.safety.qp import make_backend
-from services.safety.direction_retarget import DirectionRetargeter
 from services.safety.retarget import Retargeter
 from shared.config import GeometryName, PairGroup, RetargetMethod, StackConfig
 from shared.messages import HumanState
