@@ -69,7 +69,7 @@ def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinemat
         theta_home=np.asarray(r.theta_home),
         mirror=r.mirror,
     )
-    if r.method is RetargetMethod.LINEAR:
+    if r.method == RetargetMethod.LINEAR:
         return linear
     self_pairs = select_groups(make_pair_set([tuple(p) for p in spec.self_pairs], n_people=0),
                                {group.value for group in conf.safety.enabled_pair_groups})

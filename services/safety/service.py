@@ -297,7 +297,7 @@ class SafetyService(ScheduledService):
         else:
             self.pipeline.filter.params = FilterParams.from_config(new.safety)
             # the retargeting by directions also reads the safety section (self pairs, φ, u_max) and θ̇'s low-pass
-            by_directions = new.retargeting.method is RetargetMethod.DIRECTIONS
+            by_directions = new.retargeting.method == RetargetMethod.DIRECTIONS
             if new.retargeting != old.retargeting or by_directions and (
                     (new.safety, new.perception.angles) != (old.safety, old.perception.angles)):
                 self.pipeline.retargeter = make_retargeter(new, self.pipeline.spec, self.pipeline.retarget_kinematics)
