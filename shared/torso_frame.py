@@ -36,7 +36,10 @@ _PERSON_SEGMENTS = np.array([
 ])
 #: The same with the person's sides swapped (mirror).
 _PERSON_SEGMENTS_MIRRORED = np.concatenate([_PERSON_SEGMENTS[2:], _PERSON_SEGMENTS[:2]])
-_ROBOT_CAPSULES = np.array([_C[name] for name in ARM_SEGMENTS])
+#: The robot's capsule index of each of :data:`ARM_SEGMENTS`.
+ARM_CAPSULES = np.array([_C[name] for name in ARM_SEGMENTS])
+#: The robot's capsules whose first endpoints are its pelvis, left and right shoulder in F_T.
+FRAME_CAPSULES = np.array([_C[name] for name in ("torso", "left_upper_arm", "right_upper_arm")])
 _MIRROR_LATERAL = np.array([-1.0, 1.0, 1.0])
 
 
@@ -113,8 +116,8 @@ def person_arm_directions(points: np.ndarray, valid: np.ndarray, mirror: bool, m
 def robot_arm_rotation(capsules: np.ndarray, min_segment: float) -> np.ndarray | None:
     """The robot's F_T (:func:`torso_rotation`) from its capsules (7, 2, 3): the torso capsule's base
     as pelvis, the upper-arm capsules' bases as shoulders."""
-    return torso_rotation(capsules[_C["torso"], 0], capsules[_C["left_upper_arm"], 0],
-                          capsules[_C["right_upper_arm"], 0], min_segment)
+    pelvis, left, right = capsules[FRAME_CAPSULES, 0]
+    return torso_rotation(pelvis, left, right, min_segment)
 
 
 def robot_arm_directions(capsules: np.ndarray, min_segment: float) -> np.ndarray:
@@ -123,5 +126,5 @@ def robot_arm_directions(capsules: np.ndarray, min_segment: float) -> np.ndarray
     rotation = robot_arm_rotation(capsules, min_segment)
     if rotation is None:
         return np.full((4, 3), np.nan)
-    ends = capsules[_ROBOT_CAPSULES]
+    ends = capsules[ARM_CAPSULES]
     return _units((ends[:, 1] - ends[:, 0]) @ rotation.T, min_segment)

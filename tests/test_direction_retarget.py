@@ -181,13 +181,10 @@ def test_the_compiled_normal_equations_match_finite_differences() -> None:
     """JᵀJ + λI and Jᵀ(p − d) of the kernel against J by central differences of d(q) = R û(q) (the
     robot's torso frame R held at q, as the kernel holds it), at random poses and targets."""
     from services.safety.direction_kernel import direction_normal_equations
-    from shared.names import CAPSULE_NAMES
-    from shared.torso_frame import ARM_SEGMENTS, robot_arm_rotation
+    from shared.torso_frame import ARM_CAPSULES as capsules, FRAME_CAPSULES as frame, robot_arm_rotation
 
     kin = RobotKinematics(retargeter().kinematics.spec)
     rng = np.random.default_rng(7)
-    capsules = np.array([CAPSULE_NAMES.index(name) for name in ARM_SEGMENTS])
-    frame = np.array([CAPSULE_NAMES.index(name) for name in ("torso", "left_upper_arm", "right_upper_arm")])
     moving = np.arange(2, 8)
     for _ in range(20):
         q = rng.uniform(kin.q_min, kin.q_max)

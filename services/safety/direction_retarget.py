@@ -74,15 +74,12 @@ from services.safety.qp.base import INF_BOUND
 from services.safety.retarget import Pose, PoseLike, Retargeter, mirror_pose
 from shared.lowpass import lowpass_gain
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX, KEYPOINT_NAMES
-from shared.torso_frame import ARM_SEGMENTS, person_arm_directions
+from shared.torso_frame import ARM_CAPSULES, FRAME_CAPSULES, person_arm_directions
 
 #: The imitation joints of each arm (IMITATION_JOINT_NAMES order): shoulder pitch, roll, elbow.
 ARM_JOINTS = (np.array([2, 3, 4]), np.array([5, 6, 7]))
 #: Each arm's (upper arm, forearm) rows of the (4, 3) direction arrays.
 _ARM_ROWS = (np.array([0, 1]), np.array([2, 3]))
-_CAPSULES = np.array([CAPSULE_NAMES.index(name) for name in ARM_SEGMENTS])
-#: The capsules whose first endpoints are the robot's pelvis and shoulders (shared.torso_frame.robot_arm_rotation).
-_FRAME = np.array([CAPSULE_NAMES.index(name) for name in ("torso", "left_upper_arm", "right_upper_arm")])
 #: Segments shorter than this give no direction (m).
 MIN_SEGMENT = 0.05
 #: Levenberg–Marquardt damping λ (dimensionless: residuals are unit-vector differences).
@@ -207,12 +204,12 @@ class DirectionRetargeter:
         """Projected Levenberg–Marquardt on the joints ``moving`` (module docstring)."""
         lo, hi = self.q_min[moving], self.q_max[moving]
         rows = np.flatnonzero(np.isfinite(person).all(axis=1))
-        capsules, target = _CAPSULES[rows], np.ascontiguousarray(person[rows])
+        capsules, target = ARM_CAPSULES[rows], np.ascontiguousarray(person[rows])
         hessian, gradient = np.empty((len(moving), len(moving))), np.empty(len(moving))
         anchor = q[moving].copy()
         for _ in range(MAX_ITERATIONS):
             endpoints, jacobians = self.kinematics.compute(q)
-            if not direction_normal_equations(endpoints, jacobians, _FRAME, capsules, target, moving, DAMPING + ANCHOR,
+            if not direction_normal_equations(endpoints, jacobians, FRAME_CAPSULES, capsules, target, moving, DAMPING + ANCHOR,
                                               MIN_SEGMENT, hessian, gradient):
                 break
             gradient -= ANCHOR * (q[moving] - anchor)
