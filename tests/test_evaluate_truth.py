@@ -12,10 +12,12 @@ import pytest
 
 from safemimic.evaluate.episode import run_episode
 from safemimic.evaluate.evaluation import evaluation_config, true_person_of
-from safemimic.evaluate.fidelity import ACQUIRE_S, best_delay, direction_errors, fidelity, judged_from, lag_ms
+from safemimic.evaluate.fidelity import (
+    ACQUIRE_S, best_delay, delayed, direction_errors, fidelity, judged_from, lag_ms,
+)
 from safemimic.evaluate.person import CameraModel, corrupt, interpolate_skeleton, perceive
 from safemimic.evaluate.source import EvaluationInput, open_input
-from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe
+from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe, fixed_bodies
 from services.executor.mujoco.model import PDGains
 from services.executor.mujoco.sim import SimRobot
 from services.perception.placement import Placement
@@ -215,6 +217,24 @@ def test_a_person_moving_into_a_still_robot_is_person_caused() -> None:
     assert steps > 20
 
 
+@pytest.mark.parametrize("model", ["ours", "g1"])
+def test_fixed_bodies_are_those_no_imitation_joint_moves(model: str) -> None:
+    """The pelvis and the legs are fixed, the torso and every arm link are not; a person standing
+    in the pelvis counts among the fixed-body contacts, one touching the forearm does not."""
+    if model == "g1" and not G1_MJCF.is_file():
+        pytest.skip(f"real G1 model not found at {G1_MJCF} (set SAFEMIMIC_TEAM_SHARED to the team folder)")
+    spec = OURS if model == "ours" else OURS.with_model(G1_MJCF)
+    sim = SimRobot(spec, GAINS)
+    fixed = fixed_bodies(sim.model, tuple(sim.joint_names))
+    assert {"pelvis", "left_hip_pitch_link", "right_knee_link"} <= fixed, sorted(fixed)
+    moved = {"torso_link", "left_shoulder_pitch_link", "left_elbow_link", "right_shoulder_roll_link"}
+    assert not moved & fixed, sorted(moved & fixed)
+    pelvis = sim.data.body("pelvis").xpos.copy()
+    sim.set_human(*person_capsules(CAPSULE_NAMES.index("torso"), pelvis + [0.0, -0.2, 0.0], pelvis + [0.0, 0.2, 0.0], 0.05))
+    sim.step()
+    assert "pelvis" in {c.robot_body for c in sim.surface_contacts()}
+
+
 # ------------------------------------------------------------------------------- fidelity
 def test_lag_recovers_a_known_delay() -> None:
     dt = 0.002
@@ -241,14 +261,33 @@ def test_fidelity_is_judged_from_one_second_after_the_person_is_first_perceived(
     q_sim[:start] += 1.0  # still on its way from home
     free, directions = np.ones(n, bool), np.full((n, 4), 10.0)
     directions[:start] = 170.0
-    result = fidelity(q_true, q_sim, free, directions, np.full((n, 4), 4.0), perceived, dt)
+    result = fidelity(q_true, q_sim, free, directions, np.full((n, 4), 4.0), perceived, dt, 0.06)
     assert result["rms_true"] == 0.0 and result["rms_true_free"] == 0.0 and result["lag_ms"] == 0.0
     assert result["direction_error_deg_p95"] == 10.0 and result["direction_error_deg_p95_at_target"] == 4.0
     assert result["judged_from_s"] == pytest.approx(start * dt)
     q_sim[start + 10] += 1.0  # one step off inside the window counts
-    assert fidelity(q_true, q_sim, free, directions, directions, perceived, dt)["rms_true"] > 0.0
-    never = fidelity(q_true, q_sim, free, directions, directions, np.zeros(n, bool), dt)
+    assert fidelity(q_true, q_sim, free, directions, directions, perceived, dt, 0.06)["rms_true"] > 0.0
+    never = fidelity(q_true, q_sim, free, directions, directions, np.zeros(n, bool), dt, 0.06)
     assert never["rms_true"] is None and never["judged_from_s"] is None and never["lag_ms"] is None
+
+
+def test_a_robot_exactly_one_latency_late_scores_the_latency_floor() -> None:
+    """rms_true_free_latency_floor is what a robot exactly at the target seen L late scores: for a
+    sine of amplitude a and angular frequency ω, a·√2·|sin(ωL/2)|; a robot that trails further
+    scores more, and one without latency scores 0 over a floor of 0."""
+    dt, n, latency, omega, amplitude = 0.002, 4000, 0.06, 2 * np.pi * 1.5, 0.5
+    t = np.arange(n) * dt
+    q_true = np.tile(amplitude * np.sin(omega * t)[:, None], (1, 8))
+    perceived, free, directions = np.ones(n, bool), np.ones(n, bool), np.full((n, 4), 5.0)
+    late = fidelity(q_true, delayed(q_true, 30), free, directions, directions, perceived, dt, latency)
+    expected = amplitude * np.sqrt(2) * abs(np.sin(omega * latency / 2))
+    assert late["rms_true_free_latency_floor"] == pytest.approx(expected, rel=0.01)
+    assert late["rms_true_free"] == pytest.approx(late["rms_true_free_latency_floor"], abs=1e-6)
+    assert late["lag_ms"] == pytest.approx(1e3 * latency)
+    later = fidelity(q_true, delayed(q_true, 50), free, directions, directions, perceived, dt, latency)
+    assert later["rms_true_free"] > later["rms_true_free_latency_floor"]
+    free_of_motion = fidelity(q_true, q_true, free, directions, directions, perceived, dt, 0.0)
+    assert free_of_motion["rms_true_free"] == free_of_motion["rms_true_free_latency_floor"] == 0.0
 
 
 def test_direction_error_is_zero_for_the_same_pose_and_mirrors_facing() -> None:
@@ -282,10 +321,25 @@ def test_evaluation_reports_the_truth_keys(tmp_path: Path) -> None:
         assert m["person_caused_contact_steps"] + m["robot_caused_contact_steps"] == m["true_contacts_robot_human"]
         assert set(m["fidelity"]) == {"lag_ms", "rms_true", "rms_true_free", "direction_error_deg_p50",
                                       "direction_error_deg_p95", "direction_error_deg_p50_at_target",
-                                      "direction_error_deg_p95_at_target", "judged_from_s"}
+                                      "direction_error_deg_p95_at_target", "judged_from_s",
+                                      "rms_true_free_latency_floor"}
         assert m["fidelity"]["lag_ms"] is not None and m["fidelity"]["lag_ms"] > 0
+        assert m["true_contacts_fixed_bodies"] == 0  # beside the robot: only the arms meet
     assert metrics["nominal"]["true_contacts_robot_human"] > metrics["cbf"]["true_contacts_robot_human"]
     assert metrics["input"]["latency_ms"] == 60.0 and metrics["input"]["seed"] == 3
+
+
+def test_a_person_standing_inside_the_robot_is_a_fixed_body_contact_at_every_step(tmp_path: Path) -> None:
+    """The person's pelvis placed on the robot's: every step touches the pelvis and legs, with the
+    CBF or without, and those steps are the floor true_contacts_fixed_bodies reports."""
+    from safemimic.evaluate.evaluation import evaluate
+
+    path = write_recording(tmp_path / "raise.npz", raise_recording(1.0))
+    metrics = evaluate(evaluation_config(str(path), None, "0.0,0.0,0.0", None)).metrics()
+    for run in ("cbf", "nominal"):
+        m = metrics[run]
+        steps = metrics["input"]["control_steps"]
+        assert m["true_contacts_fixed_bodies"] == m["true_contacts_robot_human"] == steps, m
 
 
 def test_evaluation_input_is_read_once_in_order() -> None:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from safemimic.evaluate.person import HumanTrack, TruePerson
-from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe
+from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe, fixed_bodies
 from services.executor.contacts import ContactReport, ContactTally
 from services.executor.mujoco.contacts import body_contacts
 from services.executor.mujoco.executor import MujocoExecutor
@@ -63,7 +63,8 @@ class Episode:
     ``truth_is_self`` (M,) which of them are robot–robot rows;
     ``true_contact`` (N,) some robot surface penetrates the true person, ``true_depth`` (N,) m the
     deepest, ``robot_caused`` (N,) the robot closed some touching pair faster than
-    :data:`CLOSING_SPEED`; ``contact_steps`` (N, 3) robot–robot, robot–perceived person and
+    :data:`CLOSING_SPEED`, ``fixed_contact`` (N,) some touching robot body is one no imitation
+    joint moves (:func:`~safemimic.evaluate.truth.fixed_bodies`: no controller avoids it); ``contact_steps`` (N, 3) robot–robot, robot–perceived person and
     robot–true person contacts after the step; ``tally``/``true_tally`` the contacts per pair
     (robot–robot with the perceived person / the true person's robot–human ones).
     """
@@ -88,6 +89,7 @@ class Episode:
     true_contact: np.ndarray
     true_depth: np.ndarray
     robot_caused: np.ndarray
+    fixed_contact: np.ndarray
     contact_steps: np.ndarray
     tally: ContactTally
     true_tally: ContactTally
@@ -121,7 +123,7 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
         h=np.empty((n, m)), active=np.zeros((n, m), bool), binding=np.zeros(n, bool), mode=np.empty(n, np.int8),
         qp_ms=np.empty(n), human=np.full(n, -1, np.int64),
         true_clearance=np.empty((n, mt)), true_rate=np.empty((n, mt)), true_contact=np.zeros(n, bool),
-        true_depth=np.zeros(n), robot_caused=np.zeros(n, bool), contact_steps=np.zeros((n, 3), np.int64),
+        true_depth=np.zeros(n), robot_caused=np.zeros(n, bool), fixed_contact=np.zeros(n, bool), contact_steps=np.zeros((n, 3), np.int64),
         tally=ContactTally(), true_tally=ContactTally(), home_contacts=home_contacts,
         pairs=safety.pairs, truth_is_self=truth.is_self,
     )
@@ -144,6 +146,7 @@ def run_episode(
     executor = make_executor(conf, safety.kinematics)
     sim = executor.sim
     truth = TruthProbe(conf, safety.kinematics)
+    fixed = fixed_bodies(sim.model, safety.kinematics.joint_names)
     ep = _empty_episode(enforce, len(person.t), safety, truth, sim.model.nq, sim.home_contacts, dt)
     n_rows = len(safety.pairs)
     row_pair = safety.barrier.row_pair  # a geometry may monitor a pair with several rows (spheres)
@@ -190,6 +193,7 @@ def run_episode(
             ep.true_contact[k] = True
             ep.true_depth[k] = max(c.depth for c in touching)
             ep.robot_caused[k] = any(c.closing_speed > CLOSING_SPEED for c in touching)
+            ep.fixed_contact[k] = any(c.robot_body in fixed for c in touching)
 
         rows = result.rows
         ep.q_nom[k], ep.q_cbf[k], ep.u[k] = q_nom, result.q_cbf, result.u

@@ -45,8 +45,8 @@ class Evaluation:
         phi, mirror = self.conf.safety.phi, self.conf.retargeting.mirror
         at_target = target_directions(self.person, mirror)
         return {
-            "cbf": run_metrics(self.cbf, free, self.person, phi, mirror, at_target),
-            "nominal": run_metrics(self.nominal, free, self.person, phi, mirror, at_target),
+            "cbf": run_metrics(self.cbf, free, self.person, phi, mirror, at_target, self.camera.latency_s),
+            "nominal": run_metrics(self.nominal, free, self.person, phi, mirror, at_target, self.camera.latency_s),
             "input": input_metrics(self.conf, self.source, self.human, self.cbf, self.placement, self.camera),
         }
 

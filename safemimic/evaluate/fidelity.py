@@ -12,6 +12,10 @@ its home pose to the person's first pose, which says nothing of how it follows a
   joints (null: no joint moves, or the run is shorter than the search range);
 - ``rms_true`` / ``rms_true_free``: RMS of q_sim − q_true (rad) over every step and joint / over
   the free steps (no constraint binds in the CBF run);
+- ``rms_true_free_latency_floor``: RMS of q_true(t − L) − q_true(t) over the same free steps, L
+  the camera latency: the score of a robot exactly at the target it was last shown, L late
+  (perfect perception and tracking, no prediction). No causal controller that does not predict
+  the person does better on average, so a run cannot meet an ``rms_true_free`` goal below it;
 - ``direction_error_deg_p50`` / ``_p95``: over the free steps, the angle between the robot's and
   the person's upper arm (shoulder → elbow) and forearm (elbow → wrist) directions, each in its
   own torso frame F_T (:func:`shared.torso_frame.torso_axes`: e_x right, e_y forward, e_z
@@ -90,15 +94,23 @@ def judged_from(perceived: np.ndarray, dt: float) -> int | None:
     return int(first[0]) + round(ACQUIRE_S / dt) if first.size else None
 
 
+def delayed(q: np.ndarray, steps: int) -> np.ndarray:
+    """``q`` (N, …) delayed by ``steps`` ≥ 0 samples: out[k] = q[max(k − steps, 0)]."""
+    return q[np.maximum(np.arange(len(q)) - steps, 0)]
+
+
 def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions: np.ndarray,
-             directions_at_target: np.ndarray, perceived: np.ndarray, dt: float) -> dict[str, float | None]:
+             directions_at_target: np.ndarray, perceived: np.ndarray, dt: float,
+             latency_s: float) -> dict[str, float | None]:
     """The ``fidelity`` object of one run (module docstring): ``q_true``/``q_sim`` (N, 8) rad,
     ``free`` (N,) the free steps, ``directions``/``directions_at_target`` (N, 4) deg from
-    :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) a perceived state is in force."""
+    :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) a perceived state is in force,
+    ``latency_s`` the camera latency (s)."""
     start = judged_from(perceived, dt)
     first = len(q_true) if start is None else min(start, len(q_true))
     lag = lag_ms(q_true, q_sim, dt, first)
     judged = slice(first, None)
+    late = delayed(q_true, round(latency_s / dt))[judged]
     q_true, q_sim, free = q_true[judged], q_sim[judged], free[judged]
     error = q_sim - q_true
     both = np.isfinite(directions[judged][free]) & np.isfinite(directions_at_target[judged][free])
@@ -114,6 +126,7 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
         "lag_ms": lag,
         "rms_true": rms(error),
         "rms_true_free": rms(error[free]),
+        "rms_true_free_latency_floor": rms((late - q_true)[free]),
         "direction_error_deg_p50": percentile(samples, 50),
         "direction_error_deg_p95": percentile(samples, 95),
         "direction_error_deg_p50_at_target": percentile(at_target, 50),

@@ -33,6 +33,9 @@ person, every pair, every robot surface):
   (m, no φ; null: the person never had a capsule);
 - ``true_contacts_robot_human``: steps at which some robot surface (collision geoms and
   visual-only meshes such as the G1's hands) penetrates the true person's capsules;
+- ``true_contacts_fixed_bodies``: of those, the steps at which the true person is inside a robot
+  body that no imitation joint moves (pelvis, legs, waist yaw link): contacts no controller of
+  these joints can avoid, a floor under ``true_contacts_robot_human``;
 - ``true_max_depth_human``: the deepest such penetration (m);
 - ``robot_caused_contact_steps``: contact steps at which the robot moved a touching pair closer
   faster than 1 mm/s (its own velocity at the contact point along the normal);
@@ -67,7 +70,8 @@ RUN_KEYS: tuple[str, ...] = (
     "min_h_self", "min_h_human", "frames_h_negative", "contacts_robot_robot", "contacts_robot_human",
     "rms_tracking", "rms_tracking_free", "max_joint_speed", "qp_ms_p50", "qp_ms_p99",
     "relaxed_steps", "hold_steps", "nan_count",
-    "true_min_h_self", "true_min_clearance_human", "true_contacts_robot_human", "true_max_depth_human",
+    "true_min_h_self", "true_min_clearance_human", "true_contacts_robot_human", "true_contacts_fixed_bodies",
+    "true_max_depth_human",
     "robot_caused_contact_steps", "person_caused_contact_steps", "robot_approach_steps", "fidelity",
 )
 #: The wall-clock keys of a run (excluded when two evaluations are compared for determinism).
@@ -107,6 +111,7 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
         "true_min_h_self": None if self_clearance is None else _length(self_clearance - phi),
         "true_min_clearance_human": _nanmin(human_clearance),
         "true_contacts_robot_human": contacts,
+        "true_contacts_fixed_bodies": int(np.count_nonzero(ep.fixed_contact)),
         "true_max_depth_human": _length(ep.true_depth.max(initial=0.0)),
         "robot_caused_contact_steps": robot_caused,
         "person_caused_contact_steps": contacts - robot_caused,
@@ -115,9 +120,10 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
 
 
 def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, mirror: bool,
-                directions_at_target: np.ndarray) -> dict[str, Any]:
+                directions_at_target: np.ndarray, latency_s: float) -> dict[str, Any]:
     """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by the ``*_free`` keys;
     ``person``: the true person; ``phi``: the safety margin (m); ``mirror``: facing the person;
+    ``latency_s``: the camera latency (s) of the fidelity floor;
     ``directions_at_target``: :func:`direction_errors` of the robot placed at q_true (the same for
     every run of one input: :func:`target_directions`)."""
     is_self = ep.pairs.is_self
@@ -143,7 +149,8 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         **truth_metrics(ep, phi),
         "fidelity": fidelity(person.q_true, ep.q_sim, free,
                              direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
-                             directions_at_target, ep.human >= 0, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0),
+                             directions_at_target, ep.human >= 0, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0,
+                             latency_s),
     }
     assert tuple(metrics) == RUN_KEYS
     return metrics

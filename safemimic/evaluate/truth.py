@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import mujoco
 import numpy as np
 
 from services.safety.assembly import robot_radii
@@ -31,6 +32,26 @@ from shared.config import StackConfig
 
 #: A pair closes "faster than" this (m/s) when its clearance shrinks by the robot's motion.
 CLOSING_SPEED = 1e-3
+
+
+def fixed_bodies(model: mujoco.MjModel, joint_names: tuple[str, ...]) -> frozenset[str]:
+    """The names of the bodies of ``model`` that none of the imitation joints ``joint_names`` moves
+    (no such joint on their chain to the world: the G1's pelvis, legs and waist yaw link; the world
+    and the people's bodies are among them too, and carry no robot surface).
+
+    A person inside one of them touches the robot whatever the controller does: a lower bound on
+    the contact steps of any run (``true_contacts_fixed_bodies``)."""
+    imitation = {mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name) for name in joint_names}
+    fixed = set()
+    for body in range(model.nbody):
+        chain, moved = body, False
+        while chain > 0 and not moved:
+            first = model.body_jntadr[chain]
+            moved = any(first + i in imitation for i in range(model.body_jntnum[chain]))
+            chain = model.body_parentid[chain]
+        if not moved:
+            fixed.add(model.body(body).name)
+    return frozenset(fixed)
 
 
 @dataclass(frozen=True)
