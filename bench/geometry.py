@@ -83,8 +83,10 @@ def title(geometry: str, k: int | None) -> str:
 
 
 def configured(conf: StackConfig, geometry: str, k: int | None) -> StackConfig:
-    """``conf`` with ``safety.geometry`` (and ``safety.sphere_k``) set."""
-    safety = {"geometry": GeometryName(geometry)} | ({} if k is None else {"sphere_k": k})
+    """``conf`` with ``safety.geometry`` (and ``safety.sphere_k``) set, and the paper's margins: no
+    person margin (``safety.human_margin`` is ours; with it the person's spheres at k = 0, already
+    5.9 mm inside their barrier at home, start 17 mm inside and the arm raise cannot recover)."""
+    safety = {"geometry": GeometryName(geometry), "human_margin": 0.0} | ({} if k is None else {"sphere_k": k})
     return conf.model_copy(update={"safety": conf.safety.model_copy(update=safety)})
 
 

@@ -227,6 +227,12 @@ class SafetyConfig(_Section):
     geometry: GeometryName = Field(default=GeometryName.CAPSULE, description="collision geometry of the CBF rows")
     sphere_k: int = Field(default=1, ge=0, le=3, description="spheres: levels of subsampling k (each halves the spacing)")
     human_velocity_term: bool = True
+    human_margin: float = Field(
+        default=0.02, ge=0, le=0.2,
+        description="every person capsule is this much thicker in the CBF rows (m): ISO/TS 15066's Z_d, the person "
+        "sensor's position uncertainty beyond what the look-ahead covers (a camera skeleton's joints are off by "
+        "centimetres); h of a person row counts it",
+    )
     human_lookahead_s: float = Field(
         default=0.11, ge=0, le=1,
         description="an approaching person is anticipated this far ahead (s): the delay from camera to command, as "

@@ -238,3 +238,26 @@ def test_rows_written_in_place_equal_the_barriers_rows(pipeline, scene: str) -> 
         if scene == "touching":
             assert (pipeline.barrier.last_rows.distance < 1e-9).any()
     pipeline.barrier.set_external(None)
+
+
+@pytest.mark.parametrize("geometry", ["capsule", "spheres", "box"])
+def test_the_person_margin_thickens_every_person_capsule_and_nothing_else(geometry: str) -> None:
+    """``safety.human_margin`` δ: every robot–person row's h is δ lower than without it (the person's
+    capsules δ thicker: h = d − r_A − r_B − δ − φ; spheres and boxes fit their colliders around the
+    thicker capsule, so theirs are at least δ·(1 − rounding) lower), the self rows are untouched."""
+    rng = np.random.default_rng(20)
+    kin_q, rows = None, {}
+    for delta in (0.0, 0.03):
+        p = build_pipeline(load_config(environ={}, overrides={"safety": {"human_margin": delta, "geometry": geometry}}))
+        assert p.barrier.person_margin == delta
+        endpoints, radii = random_humans(np.random.default_rng(5), n_people=1)
+        p.barrier.set_external(endpoints, radii)
+        kin_q = random_q(p.kinematics, rng) if kin_q is None else kin_q
+        rows[delta] = p.filter.rows_at(kin_q)
+    thin, thick = rows[0.0], rows[0.03]
+    is_self = thin.soft == 0
+    np.testing.assert_array_equal(thin.h[is_self], thick.h[is_self])
+    if geometry == "capsule":
+        np.testing.assert_allclose(thin.h[~is_self] - thick.h[~is_self], 0.03, atol=1e-12)
+    else:
+        assert (thin.h[~is_self] - thick.h[~is_self] >= 0.015 - 1e-9).all()

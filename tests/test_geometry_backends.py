@@ -156,7 +156,8 @@ def test_box_witness_points_and_distances(kinematics) -> None:
         rows = p.filter.rows_at(rng.uniform(kinematics.q_min, kinematics.q_max))
         witness = barrier.witness_points()
         np.testing.assert_allclose(np.linalg.norm(witness[:, 0] - witness[:, 1], axis=1), np.abs(rows.distance), atol=1e-6)
-        np.testing.assert_allclose(barrier.rounding, EDGE_ROUNDING * np.concatenate([barrier.robot_radii, radii]))
+        thicker = radii + barrier.person_margin  # safety.human_margin on every person capsule
+        np.testing.assert_allclose(barrier.rounding, EDGE_ROUNDING * np.concatenate([barrier.robot_radii, thicker]))
         for side, boxes in ((0, p.pairs.first), (1, p.pairs.second)):
             local = np.einsum("mji,mj->mi", barrier.rotations[boxes], witness[:, side] - barrier.centres[boxes])
             rho = barrier.rounding[boxes]

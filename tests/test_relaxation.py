@@ -30,16 +30,22 @@ def stacked(p, q):
             np.concatenate([b.soft for b in blocks]))
 
 
-def random_intrusion(p, rng: np.random.Generator):
-    """A random joint state whose self rows and joint barriers hold, and a person's capsules pushed
-    into the margin of the robot's left forearm at 1–3 m/s toward it."""
+def random_safe_state(p, rng: np.random.Generator) -> np.ndarray:
+    """A random joint state whose self rows and joint barriers hold (no person in the scene)."""
     kin = p.kinematics
     while True:
         q = rng.uniform(kin.q_min, kin.q_max)
         p.barrier.set_external(None)
         A, b, soft = stacked(p, q)
         if (b[~soft] <= 0.0).all():
-            break
+            return q
+
+
+def random_intrusion(p, rng: np.random.Generator):
+    """A random joint state whose self rows and joint barriers hold, and a person's capsules pushed
+    into the margin of the robot's left forearm at 1–3 m/s toward it."""
+    kin = p.kinematics
+    q = random_safe_state(p, rng)
     endpoints, _ = kin.compute(q)
     forearm = endpoints[FOREARM]
     centre = forearm.mean(axis=0) + rng.normal(scale=0.03, size=3)
@@ -145,6 +151,63 @@ def test_a_person_giving_way_stops_the_imitation_the_retreat_does_not_need() -> 
         np.testing.assert_allclose(result.u[right], 0.0, atol=1e-6)
         checked += 1
     assert checked >= 5
+
+
+THIGH = CAPSULE_NAMES.index("left_thigh")
+
+
+def person_in_the_legs(p, rng: np.random.Generator, q: np.ndarray, inside: bool = True) -> None:
+    """The person's capsules at ``q``: their torso through the robot's left thigh and the other six
+    around the left forearm closing at 1–3 m/s (``inside``), or only their torso, 0.3 m in front of
+    the thigh's surface."""
+    endpoints, _ = p.kinematics.compute(q)
+    thigh = endpoints[THIGH].mean(axis=0) + ([0.0, 0.0, 0.0] if inside else [0.3 + 0.06 + 0.05, 0.0, 0.0])
+    forearm = endpoints[FOREARM].mean(axis=0)
+    capsules = forearm + rng.normal(scale=0.08, size=(7, 2, 3))
+    capsules[0] = thigh + [0.0, 0.0, -0.3], thigh + [0.0, 0.0, 0.3]
+    toward = forearm - capsules.mean(axis=1)
+    velocities = np.repeat((rng.uniform(1.0, 3.0) * toward / np.linalg.norm(toward, axis=1, keepdims=True))[:, None], 2, axis=1)
+    velocities[0] = 0.0
+    p.barrier.set_external(capsules, np.full(7, 0.05), np.arange(7) == 0 if not inside else np.ones(7, bool), velocities)
+
+
+def test_a_person_inside_the_legs_stops_the_robot_without_a_retreat_on_random_states() -> None:
+    """Protective stop inside the fixed body: on random states (the hard rows holding) with the
+    robot moving and the imitation pulling anywhere, a person inside the margin of a thigh (which
+    no joint moves) makes the step aim at rest: u_ref = 0, the hard rows hold, no person row is
+    approached (A_i u ≥ min(b_i, 0) against the rows as the barrier wrote them, b_i = −γ h_i > 0
+    included: no retreat is demanded, none is forbidden; closing no faster than braking within the
+    acceleration bound), the output is finite and once the bound has braked it the robot stands
+    still. The same person 0.3 m in front of the
+    thigh does not stop it. Without the self margin, whose push-out (cost ``relax_penalty``) may
+    otherwise keep a joint moving where its row is near-static."""
+    p = pipeline_for(self_margin=0.0)
+    rng = np.random.default_rng(26)
+    kin = p.kinematics
+    for _ in range(25):
+        q = random_safe_state(p, rng)
+        person_in_the_legs(p, rng, q)
+        A, b, soft = stacked(p, q)
+        p.filter.reset(q)
+        p.filter._u_prev = 0.5 * rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)  # noqa: SLF001 (moving)
+        bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, DT))  # noqa: SLF001
+        brake = np.clip(0.0, bounded_lower, bounded_upper)  # the hardest braking the bound allows
+        q_nom = rng.uniform(kin.q_min, kin.q_max)
+        result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
+        assert result.protective_stop and np.isfinite(result.u).all() and result.mode is not SafetyMode.HOLD
+        np.testing.assert_array_equal(result.u_ref, 0.0)
+        lhs = A @ result.u
+        assert (lhs[~soft] >= b[~soft] - TOL).all(), "a self row or joint barrier gave way"
+        if "accel_max" not in result.gave_way:  # closing no faster than braking as hard as the bound allows
+            floor = np.minimum(np.minimum(b[soft], 0.0), A[soft] @ brake)
+            assert (lhs[soft] >= floor - TOL).all(), "the robot closed in on a person capsule"
+        for _ in range(round(0.5 / DT)):
+            result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
+            if not np.abs(result.u).max() > 1e-6:
+                break
+        np.testing.assert_allclose(result.u, 0.0, atol=1e-6)  # at rest within 0.5 s
+        person_in_the_legs(p, rng, p.filter.q_cbf, inside=False)
+        assert not p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop
 
 
 def _slide_into_the_torso(margin: float) -> tuple[float, set[str]]:

@@ -82,6 +82,7 @@ SAFETY_FIELDS: dict[str, str] = {
     "u_max": "safety.u_max",
     "accel_max": "safety.accel_max",
     "self_margin": "safety.self_margin",
+    "human_margin": "safety.human_margin",
     "dt": "safety.rate_hz",  # dt = 1 / rate_hz
     "enabled_pair_groups": "safety.enabled_pair_groups",
     "capsule_radii.robot": "safety.capsule_radii",
@@ -103,7 +104,7 @@ RETARGET_FIELDS: dict[str, str] = {
     "method": "retargeting.method",
 }
 #: Safety request fields whose value goes into the configuration unchanged.
-_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_velocity_term",
+_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_velocity_term",
                   "sphere_k"}
 #: Configuration field → request field, to name the request's field in errors found on the whole config.
 REQUEST_FIELD: dict[str, str] = {path: name for name, path in (SAFETY_FIELDS | RETARGET_FIELDS).items()}
@@ -158,6 +159,9 @@ class SafetyPatch(_Patch):
     )
     self_margin: _like(SafetyConfig, "self_margin") = Field(
         None, description="how far beyond φ the self-collision rows aim (m): their linearisation's drift along a curved boundary"
+    )
+    human_margin: _like(SafetyConfig, "human_margin") = Field(
+        None, description="how much thicker every person capsule is in the CBF rows (m): the sensor's position uncertainty"
     )
     dt: Annotated[float, Strict(), Field(ge=DT_MIN, le=DT_MAX)] = Field(None, description="control period Δt (s) = 1 / control rate")
     enabled_pair_groups: Annotated[list[PairGroup], AfterValidator(_distinct)] = Field(
@@ -237,6 +241,7 @@ class SafetyParams(_View):
     u_max: list[float]
     accel_max: list[float] | None
     self_margin: float
+    human_margin: float
     dt: float
     enabled_pair_groups: list[PairGroup]
     capsule_radii: CapsuleRadii
@@ -249,7 +254,7 @@ class SafetyParams(_View):
         s, h = conf.safety, conf.human
         return cls(
             gamma=s.gamma, phi=s.phi, k=s.gain, w=s.weights, u_min=s.u_min, u_max=s.u_max, accel_max=s.accel_max,
-            self_margin=s.self_margin, dt=1.0 / s.rate_hz,
+            self_margin=s.self_margin, human_margin=s.human_margin, dt=1.0 / s.rate_hz,
             enabled_pair_groups=s.enabled_pair_groups,
             capsule_radii=CapsuleRadii(
                 robot=s.capsule_radii,

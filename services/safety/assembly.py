@@ -121,6 +121,7 @@ def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics
     pairs = preset_pair_set(pair_preset or conf.safety.pairs, [tuple(p) for p in spec.self_pairs])
     pairs = select_groups(pairs, {group.value for group in conf.safety.enabled_pair_groups})
     barrier = make_geometry(conf, pairs, kinematics)
+    barrier.person_margin = conf.safety.human_margin
     safety_filter = SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), conf.safety.backend.value,
                                  extra=[make_static_barrier(conf, kinematics)])
     retarget_kinematics = RobotKinematics(spec)

@@ -296,6 +296,7 @@ class SafetyService(ScheduledService):
             self.pipeline.filter.reset(q_cbf)
         else:
             self.pipeline.filter.params = FilterParams.from_config(new.safety)
+            self.pipeline.barrier.person_margin = new.safety.human_margin  # from the next human state on
             # the retargeting by directions also reads the safety section (self pairs, φ, u_max) and θ̇'s low-pass
             by_directions = new.retargeting.method == RetargetMethod.DIRECTIONS
             if new.retargeting != old.retargeting or by_directions and (

@@ -81,7 +81,7 @@ function jointHeader(table) {
 function fillForms() {
   const s = loaded.safety, r = loaded.retarget;
   const sf = $("safety-form");
-  for (const name of ["gamma", "phi", "self_margin", "k", "dt"]) sf.elements[name].value = s[name];
+  for (const name of ["gamma", "phi", "self_margin", "human_margin", "k", "dt"]) sf.elements[name].value = s[name];
   sf.elements.human_velocity_term.checked = s.human_velocity_term;
 
   const groups = $("pair-groups");
@@ -141,7 +141,7 @@ const same = (a, b) => JSON.stringify(a) === JSON.stringify(b);
 
 function safetyPatch() {
   const f = $("safety-form"), s = loaded.safety, patch = {};
-  for (const name of ["gamma", "phi", "self_margin", "k", "dt"]) {
+  for (const name of ["gamma", "phi", "self_margin", "human_margin", "k", "dt"]) {
     const value = Number(f.elements[name].value);
     if (value !== s[name]) patch[name] = value;
   }

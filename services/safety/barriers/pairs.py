@@ -172,6 +172,9 @@ class CollisionGeometry(Barrier):
         self._radii = np.zeros(n_stack)
         self._valid = np.ones(n_stack, bool)
         self._radii[:N_ROBOT] = self.robot_radii
+        #: added to every external capsule's radius at :meth:`set_external` (m; ``safety.human_margin``,
+        #: the person sensor's position uncertainty): h of a robot–person row counts it
+        self.person_margin = 0.0
         self._all_enabled = True
         #: (m,) the monitored pair (index into ``pairs``) of each row; the identity for capsules.
         self.row_pair = np.arange(len(pairs))
@@ -213,13 +216,14 @@ class CollisionGeometry(Barrier):
         valid: np.ndarray | None = None,
         velocities: np.ndarray | None = None,
     ) -> None:
-        """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s); None: none present."""
+        """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s; each radius plus
+        :attr:`person_margin`); None: none present."""
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
         else:
             self._endpoints[ext] = endpoints
-            self._radii[ext] = radii
+            self._radii[ext] = np.add(radii, self.person_margin)
             self._valid[ext] = True if valid is None else valid
             self._velocities[ext] = 0.0 if velocities is None else velocities
             self._external_changed()
