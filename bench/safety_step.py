@@ -169,6 +169,7 @@ def make_filter(kinematics, pairs: PairSet, conf, backend: str) -> SafetyFilter:
     capsules by default) of ``pairs`` with the scene's people, and a SafetyFilter with the static
     capsule rows (so the floor's recorded QP has the rows of the step it is compared with)."""
     barrier = make_geometry(conf, pairs, kinematics)
+    barrier.person_margin = conf.safety.human_margin
     ends, radii = external_capsules(pairs.n_external)
     barrier.set_external(ends, radii, np.ones(len(radii), bool), np.zeros_like(ends))
     return SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), backend,
@@ -651,7 +652,8 @@ def verify_mink(anchor: MinkAnchor, safety_filter: SafetyFilter, pairs: PairSet,
 
     * mink's pair list equals ours (72 geom-id pairs, same set);
     * at sample configurations every row is evaluated and mink's surface distance equals our
-      d − r_A − r_B, and its row's imitation columns equal −∂h/∂q of ours.
+      d − r_A − r_B (a person's r without ``safety.human_margin``, which mink's scene does not
+      have), and its row's imitation columns equal −∂h/∂q of ours.
     """
     mujoco = anchor.mujoco
     model = anchor.model
@@ -661,6 +663,7 @@ def verify_mink(anchor: MinkAnchor, safety_filter: SafetyFilter, pairs: PairSet,
     index = {p: i for i, p in enumerate(mink_pairs)}
     dist_err, grad_err = 0.0, 0.0
     fromto = np.empty(6)
+    margin = np.where(pairs.is_self, 0.0, safety_filter.barrier.person_margin)  # h counts it on person rows
     for q in qs:
         full = anchor.q_full_home.copy()
         full[anchor.joint_qpos] = q
@@ -669,7 +672,7 @@ def verify_mink(anchor: MinkAnchor, safety_filter: SafetyFilter, pairs: PairSet,
         rows = safety_filter.rows_at(q)
         for r, (g1, g2) in enumerate(ours):
             d = mujoco.mj_geomDistance(model, anchor.configuration.data, g1, g2, 10.0, fromto)
-            dist_err = max(dist_err, abs(d - (rows.h[r] + phi)))
+            dist_err = max(dist_err, abs(d - (rows.h[r] + phi + margin[r])))
             if d > 1e-3:
                 grad = -c.G[index[(g1, g2)], anchor.joint_dof]  # G = −∂d/∂q (d ≥ 0)
                 grad_err = max(grad_err, float(np.abs(grad - rows.A[r]).max()))
