@@ -372,7 +372,7 @@ class SafetyFilter:
         shift = self._shift
         if shifted and rows.b.base is not b_all:
             rows.b += shift[: rows.b.shape[0]]
-        stop = self.enforce and self._inside_fixed_body(h_all)
+        stop = self.enforce and inside < 0.0 and self._inside_fixed_body(h_all)  # no row inside: no test
         if stop:  # the protective stop (module docstring): rest is the target, person rows keep their floor
             q_nom, dq_nom = q, self._rest
             np.minimum(b_all, 0.0, out=b_all, where=soft_all)
