@@ -156,10 +156,10 @@ def test_a_person_giving_way_stops_the_imitation_the_retreat_does_not_need() -> 
 THIGH = CAPSULE_NAMES.index("left_thigh")
 
 
-def person_in_the_legs(p, rng: np.random.Generator, q: np.ndarray, inside: bool = True) -> None:
+def person_in_the_legs(p, rng: np.random.Generator, q: np.ndarray, inside: bool = True, walking: float = 0.0) -> None:
     """The person's capsules at ``q``: their torso through the robot's left thigh and the other six
     around the left forearm closing at 1–3 m/s (``inside``), or only their torso, 0.3 m in front of
-    the thigh's surface."""
+    the thigh's surface, walking toward it at ``walking`` m/s."""
     endpoints, _ = p.kinematics.compute(q)
     thigh = endpoints[THIGH].mean(axis=0) + ([0.0, 0.0, 0.0] if inside else [0.3 + 0.06 + 0.05, 0.0, 0.0])
     forearm = endpoints[FOREARM].mean(axis=0)
@@ -167,20 +167,22 @@ def person_in_the_legs(p, rng: np.random.Generator, q: np.ndarray, inside: bool 
     capsules[0] = thigh + [0.0, 0.0, -0.3], thigh + [0.0, 0.0, 0.3]
     toward = forearm - capsules.mean(axis=1)
     velocities = np.repeat((rng.uniform(1.0, 3.0) * toward / np.linalg.norm(toward, axis=1, keepdims=True))[:, None], 2, axis=1)
-    velocities[0] = 0.0
+    velocities[0] = [-walking, 0.0, 0.0]
     p.barrier.set_external(capsules, np.full(7, 0.05), np.arange(7) == 0 if not inside else np.ones(7, bool), velocities)
 
 
-def test_a_person_inside_the_legs_stops_the_robot_without_a_retreat_on_random_states() -> None:
-    """Protective stop inside the fixed body: on random states (the hard rows holding) with the
-    robot moving and the imitation pulling anywhere, a person inside the margin of a thigh (which
-    no joint moves) makes the step aim at rest: u_ref = 0, the hard rows hold, no person row is
+def test_a_person_at_the_legs_stops_the_robot_without_a_retreat_on_random_states() -> None:
+    """Protective stop at the fixed body: on random states (the hard rows holding) with the robot
+    moving and the imitation pulling anywhere, a person inside the margin of a thigh (which no
+    joint moves) makes the step aim at rest: u_ref = 0, the hard rows hold, no person row is
     approached (A_i u ≥ min(b_i, 0) against the rows as the barrier wrote them, b_i = −γ h_i > 0
     included: no retreat is demanded, none is forbidden; closing no faster than braking within the
     acceleration bound), the output is finite and once the bound has braked it the robot stands
-    still. The same person 0.3 m in front of the
-    thigh does not stop it. Without the self margin, whose push-out (cost ``relax_penalty``) may
-    otherwise keep a joint moving where its row is near-static."""
+    still. The same person 0.3 m in front of the thigh does not stop it standing or walking toward
+    it at 0.5 m/s, but does at 2 m/s: the row anticipates them within the look-ahead
+    (h < a (T + 1/γ)), so the robot brakes before they arrive. Without the self margin, whose
+    push-out (cost ``relax_penalty``) may otherwise keep a joint moving where its row is
+    near-static."""
     p = pipeline_for(self_margin=0.0)
     rng = np.random.default_rng(26)
     kin = p.kinematics
@@ -206,8 +208,9 @@ def test_a_person_inside_the_legs_stops_the_robot_without_a_retreat_on_random_st
             if not np.abs(result.u).max() > 1e-6:
                 break
         np.testing.assert_allclose(result.u, 0.0, atol=1e-6)  # at rest within 0.5 s
-        person_in_the_legs(p, rng, p.filter.q_cbf, inside=False)
-        assert not p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop
+        for walking, stops in ((0.0, False), (0.5, False), (2.0, True)):  # within the look-ahead at 2 m/s
+            person_in_the_legs(p, rng, p.filter.q_cbf, inside=False, walking=walking)
+            assert p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop is stops, walking
 
 
 def _slide_into_the_torso(margin: float) -> tuple[float, set[str]]:

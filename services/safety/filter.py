@@ -67,13 +67,15 @@ robot than the hair at q_cbf:
    link did not close, a rotating link's other surface points or the true capsule did. Only stage
    2's objective changes, so the feasibility argument below is unchanged.
 
-**Protective stop inside the robot's fixed body.** A person inside the margin of a robot capsule
-that no joint moves (h < 0 on a robot–person row of a thigh: the person has walked into the
-robot's legs and pelvis) surrounds a robot that cannot get out of the way, known only as they were
-a camera latency earlier. Then every robot–person row keeps only its floor, b_i ← min(b_i, 0)
-(never closer to any perceived capsule, no retreat demanded), and the target is rest (u_ref = 0):
-the robot brakes within the acceleration bound and stands still until the person has stepped out
-of its legs' margin. Retreating instead — the CBF's b_i = −γ h_i > 0, arms and waist at their
+**Protective stop at the robot's fixed body.** A robot–person row of a robot capsule that no
+joint moves (a thigh: A_i = 0) cannot be honoured by any u once it asks for a positive rate,
+b_i = −γ (h_i − T a_i) + a_i > 0: the person is inside the legs' margin, or approaching it at a_i
+will be within the look-ahead, i.e. h_i < a_i (T + 1/γ). Such a person is walking into a robot that
+cannot get out of the way, known only as they were a camera latency earlier. Then every
+robot–person row keeps only its floor, b_i ← min(b_i, 0) (never closer to any perceived capsule,
+no retreat demanded), and the target is rest (u_ref = 0): the robot brakes within the acceleration
+bound — starting as the person approaches, so that it has stopped by the time they arrive — and
+stands still until no such row fails. Retreating instead — the CBF's b_i = −γ h_i > 0, arms and waist at their
 velocity bounds away from a person 60 ms old — swept other surfaces of the rotating links into the
 person: on the development set's two walk-throughs 543 of 586 robot-caused contact steps came
 while the person stood inside the pelvis or legs. Only soft rows change and only downward, so the
@@ -211,8 +213,9 @@ class StepResult:
     any barrier that gave way (:meth:`Barrier.row_names`, each once); ``min_h_self`` (m) the
     smallest h over the self-collision distance rows of every barrier (pair and static; None: none);
     ``ddq`` (n,) rad/s² the command's acceleration (u* − u_prev)/Δt (zero after a reset);
-    ``protective_stop``: a person was inside the margin of a capsule no joint moves, so the step
-    aimed at rest and no person row asked for more than holding its distance (module docstring)."""
+    ``protective_stop``: a person row of a capsule no joint moves asked for a positive rate (the
+    person inside its margin or reaching it within the look-ahead), so the step aimed at rest and
+    no person row asked for more than holding its distance (module docstring)."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -277,7 +280,7 @@ class SafetyFilter:
             ~block.soft.astype(bool) if barrier.measures_distance else np.zeros(block.b.shape[0], bool)
             for barrier, block in zip(self.barriers, self.blocks_at(self.q_cbf))])
         #: the stacked robot–person rows of robot capsules no joint moves (zero Jacobian: a thigh), whose
-        #: h < 0 starts the protective stop (module docstring); the pair barrier's rows come first
+        #: b > 0 starts the protective stop (module docstring); the pair barrier's rows come first
         jacobians = self.kinematics.compute(self.q_cbf)[1]
         fixed = ~jacobians.reshape(len(jacobians), -1).any(axis=1)
         row_robot = np.asarray(barrier.pairs.first)[barrier.row_pair]
@@ -372,7 +375,7 @@ class SafetyFilter:
         shift = self._shift
         if shifted and rows.b.base is not b_all:
             rows.b += shift[: rows.b.shape[0]]
-        stop = self.enforce and inside < 0.0 and self._inside_fixed_body(h_all)  # no row inside: no test
+        stop = self.enforce and self._fixed_body_row_fails(b_all)
         if stop:  # the protective stop (module docstring): rest is the target, person rows keep their floor
             q_nom, dq_nom = q, self._rest
             np.minimum(b_all, 0.0, out=b_all, where=soft_all)
@@ -429,11 +432,12 @@ class SafetyFilter:
         return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
                           stop, gave_way, None if low_self == math.inf else low_self, ddq)
 
-    def _inside_fixed_body(self, h: np.ndarray) -> bool:
-        """Whether some person capsule is inside the margin of a robot capsule no joint moves
-        (``h`` (M,) the stacked rows' barrier values; a disabled row's NaN is never < 0)."""
+    def _fixed_body_row_fails(self, b: np.ndarray) -> bool:
+        """Whether a robot–person row of a capsule no joint moves asks for a positive rate (``b`` (M,)
+        the stacked rows' bounds; A_i = 0 there, so A_i u ≥ b_i > 0 fails whatever u is): the person
+        is inside its margin or reaches it within the look-ahead (module docstring)."""
         rows = self._fixed_person_rows
-        return rows.size > 0 and bool((h[rows] < 0.0).any())
+        return rows.size > 0 and bool((b[rows] > 0.0).any())
 
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
                       n_pair: int) -> tuple:
