@@ -113,7 +113,7 @@ import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
-from services.safety.barriers.kernel import movable_mask
+from services.safety.barriers.kernel import any_positive, movable_mask
 from services.safety.compiled import BoundKernel
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
@@ -268,6 +268,7 @@ class SafetyFilter:
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
         self._prepare, self._integrate = BoundKernel(prepare_qp), BoundKernel(integrate)
+        self._any_positive = BoundKernel(any_positive)
         # StepResult.relaxed of a step whose QP was feasible: no pair row gave way (shared, read-only)
         self._none_relaxed = np.zeros(barrier.n_rows, bool)
         self._none_relaxed.flags.writeable = False
@@ -436,8 +437,7 @@ class SafetyFilter:
         """Whether a robot–person row of a capsule no joint moves asks for a positive rate (``b`` (M,)
         the stacked rows' bounds; A_i = 0 there, so A_i u ≥ b_i > 0 fails whatever u is): the person
         is inside its margin or reaches it within the look-ahead (module docstring)."""
-        rows = self._fixed_person_rows
-        return rows.size > 0 and bool((b[rows] > 0.0).any())
+        return self._any_positive.call(b, self._fixed_person_rows)
 
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
                       n_pair: int) -> tuple:

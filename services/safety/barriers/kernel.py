@@ -167,6 +167,15 @@ def movable_mask(A, tol, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def any_positive(values, rows):  # pragma: no cover - compiled
+    """Whether values[i] > 0 for some i in ``rows`` (a NaN is not)."""
+    for i in rows:
+        if values[i] > 0.0:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def masked_min(h, enabled, group, want):  # pragma: no cover - compiled
     """(count, min h) over the rows with ``enabled`` and ``group == want`` (a NaN among them: NaN)."""
     count, low = 0, np.inf
