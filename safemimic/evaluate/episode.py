@@ -64,7 +64,8 @@ class Episode:
     ``true_contact`` (N,) some robot surface penetrates the true person, ``true_depth`` (N,) m the
     deepest, ``robot_caused`` (N,) the robot closed some touching pair faster than
     :data:`CLOSING_SPEED`, ``fixed_contact`` (N,) some touching robot body is one no imitation
-    joint moves (:func:`~safemimic.evaluate.truth.fixed_bodies`: no controller avoids it); ``contact_steps`` (N, 3) robot–robot, robot–perceived person and
+    joint moves (:func:`~safemimic.evaluate.truth.fixed_bodies`: no controller avoids it);
+    ``contact_steps`` (N, 3) robot–robot, robot–perceived person and
     robot–true person contacts after the step; ``tally``/``true_tally`` the contacts per pair
     (robot–robot with the perceived person / the true person's robot–human ones).
     """
@@ -123,7 +124,8 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
         h=np.empty((n, m)), active=np.zeros((n, m), bool), binding=np.zeros(n, bool), mode=np.empty(n, np.int8),
         qp_ms=np.empty(n), human=np.full(n, -1, np.int64),
         true_clearance=np.empty((n, mt)), true_rate=np.empty((n, mt)), true_contact=np.zeros(n, bool),
-        true_depth=np.zeros(n), robot_caused=np.zeros(n, bool), fixed_contact=np.zeros(n, bool), contact_steps=np.zeros((n, 3), np.int64),
+        true_depth=np.zeros(n), robot_caused=np.zeros(n, bool), fixed_contact=np.zeros(n, bool),
+        contact_steps=np.zeros((n, 3), np.int64),
         tally=ContactTally(), true_tally=ContactTally(), home_contacts=home_contacts,
         pairs=safety.pairs, truth_is_self=truth.is_self,
     )

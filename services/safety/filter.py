@@ -75,11 +75,12 @@ cannot get out of the way, known only as they were a camera latency earlier. The
 robot–person row keeps only its floor, b_i ← min(b_i, 0) (never closer to any perceived capsule,
 no retreat demanded), and the target is rest (u_ref = 0): the robot brakes within the acceleration
 bound — starting as the person approaches, so that it has stopped by the time they arrive — and
-stands still until no such row fails. Retreating instead — the CBF's b_i = −γ h_i > 0, arms and waist at their
-velocity bounds away from a person 60 ms old — swept other surfaces of the rotating links into the
-person: on the development set's two walk-throughs 543 of 586 robot-caused contact steps came
-while the person stood inside the pelvis or legs. Only soft rows change and only downward, so the
-feasibility argument below holds as it is (u = 0 satisfies a row A_i u ≥ min(b_i, 0)).
+stands still until no such row fails. Retreating instead — the CBF's b_i = −γ h_i > 0, arms and
+waist at their velocity bounds away from a person 60 ms old — swept other surfaces of the rotating
+links into the person: on the development set's two walk-throughs 543 of 586 robot-caused contact
+steps came while the person stood inside the pelvis or legs. Only soft rows change and only
+downward, so the feasibility argument below holds as it is (u = 0 satisfies a row
+A_i u ≥ min(b_i, 0)).
 
 *Feasible by construction.* u = 0, σ_i = max(b_i, 0) satisfies every constraint of both stages
 whenever 0 lies in the box, which holds in the last box tried (the velocity box alone, the
