@@ -169,7 +169,6 @@ def make_filter(kinematics, pairs: PairSet, conf, backend: str) -> SafetyFilter:
     capsules by default) of ``pairs`` with the scene's people, and a SafetyFilter with the static
     capsule rows (so the floor's recorded QP has the rows of the step it is compared with)."""
     barrier = make_geometry(conf, pairs, kinematics)
-    barrier.person_margin = conf.safety.human_margin
     ends, radii = external_capsules(pairs.n_external)
     barrier.set_external(ends, radii, np.ones(len(radii), bool), np.zeros_like(ends))
     return SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), backend,

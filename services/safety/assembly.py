@@ -90,17 +90,22 @@ def robot_radii(conf: StackConfig, kinematics: RobotKinematics) -> np.ndarray:
 
 def make_geometry(conf: StackConfig, pairs: PairSet, kinematics: RobotKinematics) -> CollisionGeometry:
     """The configured collision geometry (``safety.geometry``; spheres with ``safety.sphere_k``
-    levels of subsampling) over ``pairs``, with the configured robot radii."""
+    levels of subsampling) over ``pairs``, with the configured robot radii and person margin
+    (``safety.human_margin``)."""
     radii, n = robot_radii(conf, kinematics), len(kinematics.joint_names)
     geometry = conf.safety.geometry
+    barrier: CollisionGeometry
     if geometry is GeometryName.SPHERES:
         external = np.tile(nominal_human(conf.human), (pairs.n_external // N_ROBOT, 1))  # per person
-        return SphereBarrier(pairs, kinematics.capsule_local, radii, n, conf.safety.sphere_k, external)
-    if geometry is GeometryName.BOX:
+        barrier = SphereBarrier(pairs, kinematics.capsule_local, radii, n, conf.safety.sphere_k, external)
+    elif geometry is GeometryName.BOX:
         from services.safety.barriers.boxes import BoxBarrier  # coal only where boxes are used
 
-        return BoxBarrier(pairs, kinematics, radii, n)
-    return CapsuleBarrier(pairs, radii, n)
+        barrier = BoxBarrier(pairs, kinematics, radii, n)
+    else:
+        barrier = CapsuleBarrier(pairs, radii, n)
+    barrier.person_margin = conf.safety.human_margin
+    return barrier
 
 
 def make_static_barrier(conf: StackConfig, kinematics: RobotKinematics) -> StaticCapsuleBarrier:
@@ -121,7 +126,6 @@ def build_pipeline(conf: StackConfig, pair_preset: str | None = None, kinematics
     pairs = preset_pair_set(pair_preset or conf.safety.pairs, [tuple(p) for p in spec.self_pairs])
     pairs = select_groups(pairs, {group.value for group in conf.safety.enabled_pair_groups})
     barrier = make_geometry(conf, pairs, kinematics)
-    barrier.person_margin = conf.safety.human_margin
     safety_filter = SafetyFilter(kinematics, barrier, FilterParams.from_config(conf.safety), conf.safety.backend.value,
                                  extra=[make_static_barrier(conf, kinematics)])
     retarget_kinematics = RobotKinematics(spec)
