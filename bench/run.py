@@ -20,6 +20,7 @@ BENCHMARKS: dict[str, str] = {
     "geometry": "bench.geometry",
     "latency": "bench.latency",
     "point_filter": "bench.point_filter",
+    "angle_rates": "bench.angle_rates",
 }
 
 

@@ -486,7 +486,18 @@ class PoseAnglesConfig(_Section):
         description="a shoulder angle's branch switch (a jump ≥ π/2 in one frame) is spread at this rate (rad/s)",
     )
     rate_cutoff_hz: float = Field(
-        default=5.0, gt=0, le=100, description="θ̇ (HumanState.theta_rate): low-pass cut-off of the finite difference (Hz)"
+        default=1.0, gt=0, le=100,
+        description="θ̇ (HumanState.theta_rate): low-pass cut-off of the difference of a still angle (Hz)",
+    )
+    rate_beta: float = Field(
+        default=10.0, ge=0, le=1000,
+        description="θ̇: the cut-off grows by this much per rad/s of the angle's speed (Hz per rad/s; One Euro); "
+        "0: a fixed cut-off",
+    )
+    rate_second_order: bool = Field(
+        default=False,
+        description="θ̇: the slope at the newest frame of the parabola through the last three (exact for a constant "
+        "acceleration); false: the last difference (half a frame late)",
     )
 
     @model_validator(mode="after")

@@ -13,7 +13,8 @@ from services.perception.pipeline import PerceptionPipeline
 from services.perception.base import SkeletonFrame
 from services.perception.synthetic import skeleton
 from shared.codec import decode, encode
-from shared.config import HumanConfig, PerceptionConfig
+from shared.config import HumanConfig, PerceptionConfig, PoseAnglesConfig
+from shared.lowpass import RateFilter, angle_rate_filter
 from shared.names import KEYPOINT_INDEX as K
 from shared.names import POSE_ANGLE_NAMES
 
@@ -63,7 +64,7 @@ def test_rates_are_zero_where_not_computable() -> None:
     back = pipeline.step(frames(1, start=15 + hold_frames)[0])  # the elbow returns: fresh, no difference across the gap
     assert back.theta_valid[A["left_shoulder_pitch"]] and back.theta_rate[A["left_shoulder_pitch"]] == 0.0
     again = pipeline.step(frames(1, start=16 + hold_frames)[0])
-    assert again.theta_rate[A["left_shoulder_pitch"]] > 0.1  # and it restarts from 0 after
+    assert again.theta_rate[A["left_shoulder_pitch"]] > 0.0  # and it restarts from 0 after
     # A discontinuity (replay starting over) resets the filter: every rate 0 on that frame.
     restart = frames(1, t0=0.0)[0]
     reset = pipeline.step(SkeletonFrame(t=restart.t, xyz=restart.xyz, conf=restart.conf, captured=0.0, discontinuity=True))
@@ -71,8 +72,9 @@ def test_rates_are_zero_where_not_computable() -> None:
 
 
 def test_rate_differences_are_wrapped_and_low_passed() -> None:
-    """θ going from 3.1 to −3.1 rad moved +0.083 rad, not −6.2; the low-pass is α = 1/(1 + τ/Δt)."""
-    rates = AngleRates(rate_cutoff_hz=5.0)
+    """θ going from 3.1 to −3.1 rad moved +0.083 rad, not −6.2; a fixed cut-off (β = 0) is the
+    low-pass α = 1/(1 + τ/Δt)."""
+    rates = AngleRates(PoseAnglesConfig(rate_cutoff_hz=5.0, rate_beta=0.0, rate_second_order=False))
     valid, fresh = np.ones(8, bool), np.zeros(15, bool)
     dt = 1 / FPS
     rates(0.0, np.full(8, 3.1), valid, fresh)
@@ -80,6 +82,44 @@ def test_rate_differences_are_wrapped_and_low_passed() -> None:
     alpha = 1 / (1 + 1 / (2 * math.pi * 5.0 * dt))
     np.testing.assert_allclose(out, alpha * (2 * math.pi - 6.2) / dt)
     assert np.isfinite(rates(dt, np.zeros(8), valid, fresh)).all()  # no time elapsed: no division, rates kept finite
+
+
+def test_rate_filter_cut_off_grows_with_speed_as_one_euro_defines_it() -> None:
+    """f_c = cutoff + β |ω̂| (Casiez et al. 2012, on the rate): one step from a known ω̂ against the
+    definition; a fast channel follows a step in its rate sooner than a still one."""
+    dt, cutoff, beta = 1 / FPS, 1.0, 10.0
+    rates = RateFilter(2, cutoff, beta)
+    usable = np.ones(2, bool)
+    rates.update(dt, np.array([0.0, 3.0]) * dt, usable)  # ω̂ = α(1 Hz) · (0, 3)
+    before = rates.rate.copy()
+    after = rates.update(dt, np.array([1.0, 4.0]) * dt, usable)
+    gain = 1 / (1 + 1 / (2 * math.pi * (cutoff + beta * np.abs(before)) * dt))
+    np.testing.assert_allclose(after, before + gain * (np.array([1.0, 4.0]) - before))
+    assert gain[1] > gain[0]
+
+
+def test_second_order_rate_is_exact_for_a_constant_acceleration_and_restarts_first_order() -> None:
+    """The slope at t of the parabola through the last three samples, on uneven intervals: x = t²
+    has rate 2t there exactly (the first difference is the rate half an interval back)."""
+    rates = RateFilter(1, cutoff_hz=1e9, beta=0.0, second_order=True)  # no low-pass to speak of
+    times = np.array([0.0, 0.03, 0.07, 0.1, 0.135])
+    usable = np.ones(1, bool)
+    for i in range(1, len(times)):
+        dt = times[i] - times[i - 1]
+        out = rates.update(dt, np.array([times[i] ** 2 - times[i - 1] ** 2]), usable)
+        expected = 2 * times[i] if i >= 2 else times[i] + times[i - 1]  # the first one is first order
+        assert out[0] == pytest.approx(expected, rel=1e-6)
+    rates.update(0.03, np.array([np.nan]), ~usable)  # not usable: 0, and the next is first order again
+    assert rates.rate[0] == 0.0
+    out = rates.update(0.03, np.array([0.06]), usable)
+    assert out[0] == pytest.approx(2.0, rel=1e-6)
+
+
+def test_direction_rates_use_the_same_filter_as_the_person() -> None:
+    """Both retargetings' rates come from one definition (perception.angles' parameters)."""
+    conf = PoseAnglesConfig(rate_cutoff_hz=2.0, rate_beta=3.0, rate_second_order=True)
+    rates = angle_rate_filter(8, conf)
+    assert (rates.cutoff_hz, rates.beta, rates.second_order) == (2.0, 3.0, True)
 
 
 def test_theta_rate_is_validated_like_every_array() -> None:

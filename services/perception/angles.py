@@ -100,7 +100,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.config import PoseAnglesConfig, PoseEstimatorName
-from shared.lowpass import lowpass_gain
+from shared.lowpass import angle_rate_filter
 from shared.names import KEYPOINT_INDEX, POSE_ANGLE_NAMES
 from shared.torso_frame import Vec, dot as _dot, norm as _norm, sub as _sub, torso_axes
 
@@ -310,24 +310,25 @@ class AngleRates:
 
     Per angle i, between frames at t_prev and t (Δt = t − t_prev > 0) where θ_i is valid in both
     and none of its keypoints (:data:`ANGLE_KEYPOINTS`) is fresh (re-initialised by the point
-    filter this frame):
-
-        ω_i = wrap_2pi(θ_i(t) − θ_i(t_prev)) / Δt,        θ̇_i ← θ̇_i + α (ω_i − θ̇_i),
-
-    α = 1/(1 + τ/Δt), τ = 1/(2π ``rate_cutoff_hz``) (a first-order low-pass: it delays the rate by
-    ≈ τ and divides the difference's noise). Anywhere else θ̇_i = 0 and its low-pass restarts from
-    0; :meth:`reset` (a filter reset) zeroes every rate. The output is always finite.
+    filter this frame), the difference wrap_2pi(θ_i(t) − θ_i(t_prev)) goes through the rate filter
+    of ``conf`` (:class:`shared.lowpass.RateFilter`: the slope at the newest frame, second order
+    where the previous difference was usable too, low-passed at ``rate_cutoff_hz`` plus
+    ``rate_beta`` × the angle's speed). Anywhere else θ̇_i = 0 and its filter restarts; :meth:`reset`
+    (a filter reset) zeroes every rate. The output is always finite.
     """
 
-    def __init__(self, rate_cutoff_hz: float) -> None:
-        self.rate_cutoff_hz = rate_cutoff_hz
-        self._rate = np.zeros(N_ANGLES)
+    def __init__(self, conf: PoseAnglesConfig) -> None:
+        self.filter = angle_rate_filter(N_ANGLES, conf)
         self._theta = np.zeros(N_ANGLES)
         self._valid = np.zeros(N_ANGLES, dtype=bool)
         self._t: float | None = None
 
+    def configure(self, conf: PoseAnglesConfig) -> None:
+        """New rate parameters from the next frame on (the state is kept)."""
+        self.filter.configure(conf.rate_cutoff_hz, conf.rate_beta, conf.rate_second_order)
+
     def reset(self) -> None:
-        self._rate[:] = 0.0
+        self.filter.reset()
         self._valid[:] = False
         self._t = None
 
@@ -338,9 +339,10 @@ class AngleRates:
         if dt > 0.0 and usable.any():
             step = theta - self._theta
             step -= _TWO_PI * np.floor((step + math.pi) / _TWO_PI)  # wrap_2pi, per angle
-            self._rate += lowpass_gain(dt, self.rate_cutoff_hz) * (step / dt - self._rate)
-        self._rate[~usable] = 0.0
+            self.filter.update(dt, step, usable)
+        else:
+            self.filter.reset(~usable)
         self._theta[:] = theta
         self._valid[:] = valid
         self._t = t
-        return self._rate.copy()
+        return self.filter.rate.copy()

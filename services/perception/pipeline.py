@@ -72,7 +72,7 @@ class PerceptionPipeline:
     def __init__(self, conf: PerceptionConfig, human: HumanConfig) -> None:
         self.filter = PointFilter(conf.point_filter, N_KEYPOINTS)
         self.estimator = PoseEstimator(conf.angles)
-        self.rates = AngleRates(conf.angles.rate_cutoff_hz)
+        self.rates = AngleRates(conf.angles)
         self.capsules = HumanCapsules(human)
         self.counters = PerceptionCounters()
 
@@ -80,7 +80,7 @@ class PerceptionPipeline:
         """Use new filter, angle and capsule parameters from the next frame on (state is kept)."""
         self.filter.conf = conf.point_filter
         self.estimator.configure(conf.angles)
-        self.rates.rate_cutoff_hz = conf.angles.rate_cutoff_hz
+        self.rates.configure(conf.angles)
         self.capsules.configure(human)
 
     def step(self, frame: SkeletonFrame) -> PerceptionResult:

@@ -18,6 +18,7 @@ from services.safety.pairs import N_ROBOT, PairSet, make_pair_set, preset_pair_s
 from services.safety.qp import make_backend
 from services.safety.retarget import Retargeter
 from shared.config import GeometryName, PairGroup, RetargetMethod, StackConfig
+from shared.lowpass import angle_rate_filter
 from shared.messages import HumanState
 from shared.robot_spec import RobotSpec, configured_robot_spec
 
@@ -75,8 +76,9 @@ def make_retargeter(conf: StackConfig, spec: RobotSpec, kinematics: RobotKinemat
                                {group.value for group in conf.safety.enabled_pair_groups})
     body = [CapsuleBarrier(self_pairs, robot_radii(conf, kinematics), len(kinematics.joint_names)),
             make_static_barrier(conf, kinematics)]
-    return DirectionRetargeter(linear, kinematics, conf.perception.angles.rate_cutoff_hz, body, conf.safety.phi,
-                               conf.safety.phi, make_backend(conf.safety.backend.value),
+    rates = angle_rate_filter(len(linear.q_min), conf.perception.angles)
+    return DirectionRetargeter(linear, kinematics, rates, body, conf.safety.phi, conf.safety.phi,
+                               make_backend(conf.safety.backend.value),
                                np.minimum(conf.safety.u_max, np.abs(conf.safety.u_min or conf.safety.u_max)))
 
 

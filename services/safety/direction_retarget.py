@@ -51,15 +51,17 @@ leaning on the arm) of up to φ at the surface still leaves the robot clear of i
 row cannot bind while the robot settles onto a still target at h ≥ ε (the self margin) when
 γ ≥ K: the row asks ∇h u ≥ −γ(h − ε), tracking gives ∇h u ≈ −K(h − h_target) ≥ −K(h − ε).
 
-The rate q̇_nom of an arm joint is the finite difference of its consecutive targets, low-passed
-like the person's θ̇ (``perception.angles.rate_cutoff_hz``, the contract of
-``HumanState.theta_rate``): the two retargetings' rates trail the person alike. It restarts from 0
+The rate q̇_nom of an arm joint is the difference of its consecutive targets through the same rate
+filter as the person's θ̇ (``perception.angles``' rate parameters, :class:`shared.lowpass.RateFilter`,
+the contract of ``HumanState.theta_rate``): the two retargetings' rates trail the person alike. It restarts from 0
 where the difference would span a gap: the arm not solved in the previous state, or the person's
 rates restarted (all of the arm's three θ̇ exactly 0: the perception's "not computable"). It is 0
 on a joint at its limit. The waist's rate is eq. 2's.
 """
 
 from __future__ import annotations
+
+import copy
 
 from collections.abc import Sequence
 
@@ -72,7 +74,7 @@ from services.safety.kinematics import RobotKinematics
 from services.safety.qp import QPBackend, QPProblem
 from services.safety.qp.base import INF_BOUND
 from services.safety.retarget import Pose, PoseLike, Retargeter, mirror_pose
-from shared.lowpass import lowpass_gain
+from shared.lowpass import RateFilter
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX, KEYPOINT_NAMES
 from shared.torso_frame import ARM_CAPSULES, FRAME_CAPSULES, person_arm_directions
 
@@ -100,19 +102,19 @@ class DirectionRetargeter:
 
     ``linear`` is the waist's eq.-2 map (its mirror, calibration and limits are this retargeter's);
     ``kinematics`` an instance only this retargeter calls (it overwrites its buffers);
-    ``rate_cutoff_hz`` the low-pass of the rates (Hz); ``body`` the self-collision barriers whose
+    ``rates`` the filter of the rates (8 channels, :func:`shared.lowpass.angle_rate_filter`); ``body`` the self-collision barriers whose
     h (with margin ``phi``, m) the target keeps ≥ ``clearance`` (m), solved by ``backend``;
     ``max_speed`` (8,) rad/s the fastest an arm target moves between states (None: unbounded).
     """
 
-    def __init__(self, linear: Retargeter, kinematics: RobotKinematics, rate_cutoff_hz: float,
+    def __init__(self, linear: Retargeter, kinematics: RobotKinematics, rates: RateFilter,
                  body: Sequence[Barrier] = (), phi: float = 0.0, clearance: float = 0.0,
                  backend: QPBackend | None = None, max_speed: np.ndarray | None = None) -> None:
         if body and backend is None:
             raise SafetyConfigError("a body to keep clear of needs a QP backend")
         self.linear = linear
         self.kinematics = kinematics
-        self.rate_cutoff_hz = rate_cutoff_hz
+        self.rates = rates
         self.body = tuple(body)
         self.phi = phi
         self.clearance = clearance
@@ -123,7 +125,6 @@ class DirectionRetargeter:
         self._unbounded = {n: (np.ones(n), np.full(n, -INF_BOUND), np.full(n, INF_BOUND)) for n in (3, 6)}
         self._q = linear.hold_value()
         self._solved = np.zeros(2, bool)  # arm solved in the previous state
-        self._rate = np.zeros_like(self._q)
         self._t: float | None = None
 
     @property
@@ -144,7 +145,7 @@ class DirectionRetargeter:
         self.linear.hold(q_nom)
         self._q = self.linear.hold_value()
         self._solved[:] = False
-        self._rate[:] = 0.0
+        self.rates.reset()
 
     def calibrate(self, theta: np.ndarray) -> None:
         """θ_home for the waist's eq. 2 (the arms need none: directions are absolute)."""
@@ -153,7 +154,7 @@ class DirectionRetargeter:
     def warm_up(self) -> None:
         """One throw-away solve of the robot's own arms at its held target, state restored after: the
         first call pays one-time setup (≈ 7 ms measured here) that must not fall inside a tick."""
-        saved = (self._q.copy(), self._solved.copy(), self._rate.copy(), self._t)
+        saved = (self._q.copy(), self._solved.copy(), copy.deepcopy(self.rates), self._t)
         q = self.linear.hold_value()
         ends = self.kinematics.compute(q)[0]
         c = {name: i for i, name in enumerate(CAPSULE_NAMES)}
@@ -168,7 +169,7 @@ class DirectionRetargeter:
         self.track(Pose(np.zeros(len(q)), np.zeros(len(q), bool), np.zeros(len(q)), points, valid, 0.0))
         if self.body:
             self._clear_step(q, ARM_JOINTS[0], np.full(3, -1.0), np.eye(3), np.zeros(3), *self.kinematics.compute(q))
-        self._q, self._solved, self._rate, self._t = saved
+        self._q, self._solved, self.rates, self._t = saved
 
     def track(self, pose: PoseLike) -> tuple[np.ndarray, np.ndarray]:
         """(q_nom, q̇_nom) for ``pose`` (module docstring)."""
@@ -185,7 +186,7 @@ class DirectionRetargeter:
             q = self._speed_limited(q, q_prev, float(pose.stamp), solved)
         self._q = q
         self._update_rates(pose, q, q_prev, solved)
-        dq = self._rate.copy()
+        dq = self.rates.rate.copy()
         dq[:2] = dq_lin[:2]
         return q.copy(), dq
 
@@ -250,14 +251,14 @@ class DirectionRetargeter:
         person_rates = np.asarray(pose.theta_rate, float)
         if self.mirror:
             person_rates = mirror_pose(person_rates)
+        usable = np.zeros(len(q), bool)
         for arm, joints in enumerate(ARM_JOINTS):
             restarted = not (person_rates[joints] != 0.0).any()
-            if solved[arm] and self._solved[arm] and dt > 0.0 and not restarted:
-                self._rate[joints] += lowpass_gain(dt, self.rate_cutoff_hz) * ((q[joints] - q_prev[joints]) / dt
-                                                                              - self._rate[joints])
-            else:
-                self._rate[joints] = 0.0
-        at_limit = (q <= self.q_min) | (q >= self.q_max)
-        self._rate[at_limit] = 0.0
+            usable[joints] = solved[arm] and self._solved[arm] and not restarted
+        if dt > 0.0:
+            self.rates.update(dt, q - q_prev, usable)
+        else:
+            self.rates.reset()
+        self.rates.reset((q <= self.q_min) | (q >= self.q_max))
         self._solved = solved
         self._t = t
