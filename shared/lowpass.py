@@ -31,7 +31,7 @@ class RateFilter:
     where the first-order difference is the rate half an interval back (Δt/2 late: 17 ms at 30 Hz).
     Then ω̂_i ← ω̂_i + α_i (ω_i − ω̂_i), α_i = 1/(1 + τ_i/Δt), τ_i = 1/(2π f_i),
 
-        f_i = ``cutoff_hz`` + ``beta`` · |ω̂_i|            (Hz; ``beta`` in Hz per unit/s, 0: a fixed cut-off),
+        f_i = ``cutoff_hz`` + ``beta`` · |ω̂_i|   (ω̂_i before the update; ``beta`` Hz per unit/s),
 
     so a still channel (whose ω is noise) is smoothed at ``cutoff_hz`` and a fast one barely delayed.
     A channel whose difference is not usable returns 0 and restarts: its next usable difference is

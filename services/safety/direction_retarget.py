@@ -51,18 +51,18 @@ leaning on the arm) of up to φ at the surface still leaves the robot clear of i
 row cannot bind while the robot settles onto a still target at h ≥ ε (the self margin) when
 γ ≥ K: the row asks ∇h u ≥ −γ(h − ε), tracking gives ∇h u ≈ −K(h − h_target) ≥ −K(h − ε).
 
-The rate q̇_nom of an arm joint is the difference of its consecutive targets through the same rate
-filter as the person's θ̇ (``perception.angles``' rate parameters, :class:`shared.lowpass.RateFilter`,
-the contract of ``HumanState.theta_rate``): the two retargetings' rates trail the person alike. It restarts from 0
-where the difference would span a gap: the arm not solved in the previous state, or the person's
-rates restarted (all of the arm's three θ̇ exactly 0: the perception's "not computable"). It is 0
-on a joint at its limit. The waist's rate is eq. 2's.
+The rate q̇_nom of an arm joint is the difference of its consecutive targets through the same
+rate filter as the person's θ̇ (``perception.angles``' rate parameters,
+:class:`shared.lowpass.RateFilter`, the contract of ``HumanState.theta_rate``): the two
+retargetings' rates trail the person alike. It restarts from 0 where the difference would span
+a gap: the arm not solved in the previous state, or the person's rates restarted (all of the
+arm's three θ̇ exactly 0: the perception's "not computable"). It is 0 on a joint at its limit.
+The waist's rate is eq. 2's.
 """
 
 from __future__ import annotations
 
 import copy
-
 from collections.abc import Sequence
 
 import numpy as np
@@ -102,8 +102,9 @@ class DirectionRetargeter:
 
     ``linear`` is the waist's eq.-2 map (its mirror, calibration and limits are this retargeter's);
     ``kinematics`` an instance only this retargeter calls (it overwrites its buffers);
-    ``rates`` the filter of the rates (8 channels, :func:`shared.lowpass.angle_rate_filter`); ``body`` the self-collision barriers whose
-    h (with margin ``phi``, m) the target keeps ≥ ``clearance`` (m), solved by ``backend``;
+    ``rates`` the filter of the rates (8 channels, :func:`shared.lowpass.angle_rate_filter`);
+    ``body`` the self-collision barriers whose h (with margin ``phi``, m) the target keeps
+    ≥ ``clearance`` (m), solved by ``backend``;
     ``max_speed`` (8,) rad/s the fastest an arm target moves between states (None: unbounded).
     """
 
