@@ -180,10 +180,9 @@ def test_a_person_at_the_legs_stops_the_robot_without_a_retreat_on_random_states
     acceleration bound), the output is finite and once the bound has braked it the robot stands
     still. The same person 0.3 m in front of the thigh does not stop it standing or walking toward
     it at 0.5 m/s, but does at 2 m/s: the row anticipates them within the look-ahead
-    (h < a (T + 1/γ)), so the robot brakes before they arrive. Without the self margin, whose
-    push-out (cost ``relax_penalty``) may otherwise keep a joint moving where its row is
-    near-static."""
-    p = pipeline_for(self_margin=0.0)
+    (h < a (T + 1/γ)), so the robot brakes before they arrive. With the shipped self margin (its
+    push-out of a row inside the band keeps no joint moving: at rest within 0.5 s all the same)."""
+    p = pipeline_for()
     rng = np.random.default_rng(26)
     kin = p.kinematics
     for _ in range(25):
