@@ -69,7 +69,12 @@ class RateFilter:
         return self.rate.copy()
 
 
+def angle_rate_parameters(conf: PoseAnglesConfig) -> tuple[float, float, bool]:
+    """(cut-off Hz, β Hz per rad/s, second order) of ``perception.angles``' rate filter."""
+    return conf.rate_cutoff_hz, conf.rate_beta, conf.rate_second_order
+
+
 def angle_rate_filter(n: int, conf: PoseAnglesConfig) -> RateFilter:
     """The rate filter of ``perception.angles`` for n channels: the person's θ̇ and the retargeted
     rates that must trail the person alike."""
-    return RateFilter(n, conf.rate_cutoff_hz, conf.rate_beta, conf.rate_second_order)
+    return RateFilter(n, *angle_rate_parameters(conf))

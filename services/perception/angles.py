@@ -100,7 +100,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.config import PoseAnglesConfig, PoseEstimatorName
-from shared.lowpass import angle_rate_filter
+from shared.lowpass import angle_rate_filter, angle_rate_parameters
 from shared.names import KEYPOINT_INDEX, POSE_ANGLE_NAMES
 from shared.torso_frame import Vec, dot as _dot, norm as _norm, sub as _sub, torso_axes
 
@@ -325,7 +325,7 @@ class AngleRates:
 
     def configure(self, conf: PoseAnglesConfig) -> None:
         """New rate parameters from the next frame on (the state is kept)."""
-        self.filter.configure(conf.rate_cutoff_hz, conf.rate_beta, conf.rate_second_order)
+        self.filter.configure(*angle_rate_parameters(conf))
 
     def reset(self) -> None:
         self.filter.reset()
