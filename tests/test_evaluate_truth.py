@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -200,6 +201,66 @@ def test_an_arm_driven_into_a_still_person_is_robot_caused() -> None:
     assert min(rates) < -CLOSING_SPEED  # the capsule view agrees: the robot closes the pair
 
 
+def test_the_commanded_closing_speed_is_the_contact_point_velocity_along_the_normal() -> None:
+    """−nᵀ J_p[:, I] dq against a finite difference of the contact point carried by its body when
+    only the imitation joints move by ε·dq; zero for a still command."""
+    sim = SimRobot(OURS, GAINS)
+    endpoints, _ = RobotKinematics(OURS).compute(sim.q_home)
+    forearm = endpoints[CAPSULE_NAMES.index("left_forearm")].mean(axis=0)
+    sim.set_human(*person_capsules(LEFT_FOREARM, forearm + [0.03, -0.2, 0.0], forearm + [0.03, 0.2, 0.0], 0.05))
+    sim.set_command(sim.q_home)
+    sim.step()
+    contact = sim.surface_contacts()[0]
+    body = sim.data.body(contact.robot_body)
+    local = body.xmat.reshape(3, 3).T @ (contact.point - body.xpos)
+    qadr = [sim.model.joint(name).qposadr[0] for name in sim.joint_names]
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        dq, eps = rng.normal(size=len(sim.joint_names)), 1e-7
+        data = mujoco.MjData(sim.model)
+        data.qpos[:] = sim.data.qpos
+        data.qpos[qadr] += eps * dq
+        mujoco.mj_kinematics(sim.model, data)
+        moved = data.body(contact.robot_body).xpos + data.body(contact.robot_body).xmat.reshape(3, 3) @ local
+        expected = -float(contact.normal @ (moved - contact.point)) / eps
+        assert sim.commanded_closing_speed(contact, dq) == pytest.approx(expected, rel=1e-4, abs=1e-7)
+    assert sim.commanded_closing_speed(contact, np.zeros(len(sim.joint_names))) == 0.0
+
+
+def test_a_servo_settling_on_a_still_command_is_robot_caused_but_not_commanded() -> None:
+    """The command jumps into the person and then stays (u* = 0): the servo moves the forearm
+    into it, which the contact count blames on the robot, and the commanded speed says the
+    command did not; driven with the matching velocity, both agree."""
+    sim = SimRobot(OURS, GAINS)
+    endpoints, _ = RobotKinematics(OURS).compute(sim.q_home)
+    forearm = endpoints[CAPSULE_NAMES.index("left_forearm")].mean(axis=0)
+    person = person_capsules(LEFT_FOREARM, forearm + [0.07, -0.3, 0.0], forearm + [0.07, 0.3, 0.0], 0.04)
+    sim.set_human(*person)
+    pitch = sim.joint_names.index("left_shoulder_pitch_joint")
+    target = sim.q_home.copy()
+    target[pitch] -= 0.3  # the arm forward, through the capsule in front of the forearm
+    still, settling = np.zeros(len(sim.joint_names)), []
+    for _ in range(100):
+        sim.set_command(target)
+        sim.step()
+        closing = [c for c in sim.surface_contacts() if c.closing_speed > CLOSING_SPEED]
+        settling += [sim.commanded_closing_speed(c, still) for c in closing]
+    assert settling and max(settling) == 0.0
+    moving = sim.q_home.copy()
+    forward = still.copy()
+    forward[pitch] = -1.0
+    sim.reset()
+    sim.set_human(*person)
+    commanded = []
+    for _ in range(300):
+        moving = moving + forward * sim.timestep
+        sim.set_command(moving, forward)
+        sim.step()
+        commanded += [sim.commanded_closing_speed(c, forward) for c in sim.surface_contacts()
+                      if c.closing_speed > CLOSING_SPEED]
+    assert commanded and min(commanded) > CLOSING_SPEED
+
+
 def test_a_person_moving_into_a_still_robot_is_person_caused() -> None:
     sim = SimRobot(OURS, GAINS)
     endpoints, _ = RobotKinematics(OURS).compute(sim.q_home)
@@ -319,6 +380,11 @@ def test_evaluation_reports_the_truth_keys(tmp_path: Path) -> None:
     for run in ("cbf", "nominal"):
         m = metrics[run]
         assert m["person_caused_contact_steps"] + m["robot_caused_contact_steps"] == m["true_contacts_robot_human"]
+        assert 0 <= m["robot_caused_contact_steps_commanded"] <= m["robot_caused_contact_steps"]
+        assert 0 <= m["robot_approach_steps_commanded"] <= m["robot_approach_steps"]
+        for steps, mm in (("robot_caused_contact_steps", "robot_caused_contact_mm"),
+                          ("robot_approach_steps", "robot_approach_mm")):
+            assert (m[mm] > 0) == (m[steps] > 0), m  # every counted step closes > 1 mm/s for 2 ms
         assert set(m["fidelity"]) == {"lag_ms", "rms_true", "rms_true_free", "direction_error_deg_p50",
                                       "direction_error_deg_p95", "direction_error_deg_p50_at_target",
                                       "direction_error_deg_p95_at_target", "judged_from_s",
@@ -326,6 +392,7 @@ def test_evaluation_reports_the_truth_keys(tmp_path: Path) -> None:
         assert m["fidelity"]["lag_ms"] is not None and m["fidelity"]["lag_ms"] > 0
         assert m["true_contacts_fixed_bodies"] == 0  # beside the robot: only the arms meet
     assert metrics["nominal"]["true_contacts_robot_human"] > metrics["cbf"]["true_contacts_robot_human"]
+    assert metrics["nominal"]["robot_caused_contact_steps_commanded"] > 0  # without the CBF the command drives in
     assert metrics["input"]["latency_ms"] == 60.0 and metrics["input"]["seed"] == 3
 
 

@@ -59,11 +59,14 @@ class Episode:
 
     The world: ``q_sim``/``dq_sim`` (N, 8) simulated joints after the step; ``qpos`` (N, nq) the
     whole MuJoCo pose; ``robot_capsules`` (N, 7, 2, 3) the CBF capsules at q_sim;
-    ``true_clearance``/``true_rate`` (N, M) per truth row (:attr:`TruthProbe.names`),
+    ``true_clearance``/``true_rate``/``true_rate_commanded`` (N, M) per truth row
+    (:attr:`TruthProbe.names`; the rate at q̇_sim and at the command u*),
     ``truth_is_self`` (M,) which of them are robot–robot rows;
     ``true_contact`` (N,) some robot surface penetrates the true person, ``true_depth`` (N,) m the
     deepest, ``robot_caused`` (N,) the robot closed some touching pair faster than
-    :data:`CLOSING_SPEED`, ``fixed_contact`` (N,) some touching robot body is one no imitation
+    :data:`CLOSING_SPEED`, ``robot_caused_commanded`` (N,) such a pair that the command u* itself
+    closes faster than that too (at the robot's pose), ``closing_speed`` (N,) m/s the fastest
+    closing of a touching pair (0: none), ``fixed_contact`` (N,) some touching robot body is one no imitation
     joint moves (:func:`~safemimic.evaluate.truth.fixed_bodies`: no controller avoids it);
     ``contact_steps`` (N, 3) robot–robot, robot–perceived person and
     robot–true person contacts after the step; ``tally``/``true_tally`` the contacts per pair
@@ -87,9 +90,12 @@ class Episode:
     human: np.ndarray
     true_clearance: np.ndarray
     true_rate: np.ndarray
+    true_rate_commanded: np.ndarray
     true_contact: np.ndarray
     true_depth: np.ndarray
     robot_caused: np.ndarray
+    robot_caused_commanded: np.ndarray
+    closing_speed: np.ndarray
     fixed_contact: np.ndarray
     contact_steps: np.ndarray
     tally: ContactTally
@@ -123,8 +129,9 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
         dq_sim=np.empty((n, j)), qpos=np.empty((n, nq)), robot_capsules=np.empty((n, 7, 2, 3)),
         h=np.empty((n, m)), active=np.zeros((n, m), bool), binding=np.zeros(n, bool), mode=np.empty(n, np.int8),
         qp_ms=np.empty(n), human=np.full(n, -1, np.int64),
-        true_clearance=np.empty((n, mt)), true_rate=np.empty((n, mt)), true_contact=np.zeros(n, bool),
-        true_depth=np.zeros(n), robot_caused=np.zeros(n, bool), fixed_contact=np.zeros(n, bool),
+        true_clearance=np.empty((n, mt)), true_rate=np.empty((n, mt)), true_rate_commanded=np.empty((n, mt)),
+        true_contact=np.zeros(n, bool), true_depth=np.zeros(n), robot_caused=np.zeros(n, bool),
+        robot_caused_commanded=np.zeros(n, bool), closing_speed=np.zeros(n), fixed_contact=np.zeros(n, bool),
         contact_steps=np.zeros((n, 3), np.int64),
         tally=ContactTally(), true_tally=ContactTally(), home_contacts=home_contacts,
         pairs=safety.pairs, truth_is_self=truth.is_self,
@@ -189,12 +196,17 @@ def run_episode(
         ep.tally.update(report)
         ep.true_tally.update(true_report)
         ep.q_sim[k], ep.dq_sim[k], ep.qpos[k] = sim.q, sim.dq, sim.data.qpos
-        step = truth.measure(ep.q_sim[k], ep.dq_sim[k], person.capsules[k], person.radii, person.capsule_valid[k])
+        step = truth.measure(ep.q_sim[k], ep.dq_sim[k], person.capsules[k], person.radii, person.capsule_valid[k],
+                             result.u)
         ep.true_clearance[k], ep.true_rate[k], ep.robot_capsules[k] = step.clearance, step.rate, step.robot
+        ep.true_rate_commanded[k] = step.commanded
         if touching:
             ep.true_contact[k] = True
             ep.true_depth[k] = max(c.depth for c in touching)
-            ep.robot_caused[k] = any(c.closing_speed > CLOSING_SPEED for c in touching)
+            closing = [c for c in touching if c.closing_speed > CLOSING_SPEED]
+            ep.robot_caused[k] = bool(closing)
+            ep.robot_caused_commanded[k] = any(sim.commanded_closing_speed(c, result.u) > CLOSING_SPEED for c in closing)
+            ep.closing_speed[k] = max(0.0, max(c.closing_speed for c in touching))
             ep.fixed_contact[k] = any(c.robot_body in fixed for c in touching)
 
         rows = result.rows

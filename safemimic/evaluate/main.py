@@ -40,7 +40,7 @@ INPUT_ERRORS = (ConfigError, SourceUnavailable, RobotSpecError, KinematicsError,
 
 def summary_table(metrics: dict[str, Any]) -> str:
     """The two runs side by side, one metric a line (the fidelity object flattened)."""
-    lines = [f"{'metric':<30}{'with CBF':>14}{'without CBF':>14}"]
+    lines = [f"{'metric':<40}{'with CBF':>14}{'without CBF':>14}"]
 
     def cell(value: Any) -> str:
         return f"{'—' if value is None else f'{value:g}':>14}"
@@ -48,9 +48,9 @@ def summary_table(metrics: dict[str, Any]) -> str:
     for key in RUN_KEYS:
         if key == "fidelity":
             for sub in metrics["cbf"]["fidelity"]:
-                lines.append(f"{'fidelity.' + sub:<30}" + "".join(cell(metrics[r]["fidelity"][sub]) for r in ("cbf", "nominal")))
+                lines.append(f"{'fidelity.' + sub:<40}" + "".join(cell(metrics[r]["fidelity"][sub]) for r in ("cbf", "nominal")))
         else:
-            lines.append(f"{key:<30}" + "".join(cell(metrics[r][key]) for r in ("cbf", "nominal")))
+            lines.append(f"{key:<40}" + "".join(cell(metrics[r][key]) for r in ("cbf", "nominal")))
     return "\n".join(lines)
 
 

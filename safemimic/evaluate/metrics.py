@@ -43,6 +43,14 @@ person, every pair, every robot surface):
   was still or retreating);
 - ``robot_approach_steps``: steps at which some robot–person pair's true clearance is below φ
   and the robot closes it faster than 1 mm/s;
+- ``robot_caused_contact_steps_commanded`` / ``robot_approach_steps_commanded``: of those, the
+  steps at which the command u* itself closes such a pair faster than 1 mm/s (its velocity at the
+  robot's pose, along the same normal): what the filter asked for. The other steps are the
+  servos moving where their command does not — trailing it, or settling on it after the command
+  stopped (a servo at rest creeps within the joint friction's dead band, f/kp = 2 mrad on an arm);
+- ``robot_caused_contact_mm`` / ``robot_approach_mm``: how far the robot closed in over those
+  steps, Σ_k Δt · (the fastest closing speed of a touching / an approached pair at step k), mm:
+  the size of what the step counts count;
 - ``fidelity``: lag, RMS and arm-direction error against the true person
   (:mod:`safemimic.evaluate.fidelity`).
 
@@ -72,7 +80,9 @@ RUN_KEYS: tuple[str, ...] = (
     "relaxed_steps", "hold_steps", "nan_count",
     "true_min_h_self", "true_min_clearance_human", "true_contacts_robot_human", "true_contacts_fixed_bodies",
     "true_max_depth_human",
-    "robot_caused_contact_steps", "person_caused_contact_steps", "robot_approach_steps", "fidelity",
+    "robot_caused_contact_steps", "person_caused_contact_steps", "robot_approach_steps",
+    "robot_caused_contact_steps_commanded", "robot_approach_steps_commanded", "robot_caused_contact_mm",
+    "robot_approach_mm", "fidelity",
 )
 #: The wall-clock keys of a run (excluded when two evaluations are compared for determinism).
 TIMING_KEYS: tuple[str, ...] = ("qp_ms_p50", "qp_ms_p99")
@@ -82,6 +92,10 @@ def _length(value: float) -> float | None:
     return round(float(value), 6) + 0.0 if np.isfinite(value) else None  # + 0.0: no "-0.0"
 
 
+
+
+def _millimetres(metres: float) -> float:
+    return round(1e3 * float(metres), 3) + 0.0
 
 
 def _rms(error: np.ndarray) -> float:
@@ -101,9 +115,12 @@ def _nanmin(values: np.ndarray) -> float | None:
 def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
     """The ``true_*`` and contact-cause keys of one run (``phi``: the safety margin φ, m)."""
     is_self = ep.truth_is_self
+    dt = float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 0.0
     human_clearance = ep.true_clearance[:, ~is_self]
-    closing = np.nan_to_num(ep.true_rate[:, ~is_self], nan=0.0) < -CLOSING_SPEED
-    near = np.nan_to_num(human_clearance, nan=np.inf) < phi
+    rate = np.nan_to_num(ep.true_rate[:, ~is_self], nan=0.0)
+    commanded = np.nan_to_num(ep.true_rate_commanded[:, ~is_self], nan=0.0) < -CLOSING_SPEED
+    approach = (np.nan_to_num(human_clearance, nan=np.inf) < phi) & (rate < -CLOSING_SPEED)  # (N, pairs)
+    approach_speed = np.where(approach, -rate, 0.0).max(axis=1, initial=0.0)
     self_clearance = _nanmin(ep.true_clearance[:, is_self])
     robot_caused = int(np.count_nonzero(ep.robot_caused))
     contacts = int(np.count_nonzero(ep.true_contact))
@@ -115,7 +132,11 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
         "true_max_depth_human": _length(ep.true_depth.max(initial=0.0)),
         "robot_caused_contact_steps": robot_caused,
         "person_caused_contact_steps": contacts - robot_caused,
-        "robot_approach_steps": int(np.count_nonzero((near & closing).any(axis=1))),
+        "robot_approach_steps": int(np.count_nonzero(approach.any(axis=1))),
+        "robot_caused_contact_steps_commanded": int(np.count_nonzero(ep.robot_caused_commanded)),
+        "robot_approach_steps_commanded": int(np.count_nonzero((approach & commanded).any(axis=1))),
+        "robot_caused_contact_mm": _millimetres(ep.closing_speed[ep.robot_caused].sum() * dt),
+        "robot_approach_mm": _millimetres(approach_speed.sum() * dt),
     }
 
 

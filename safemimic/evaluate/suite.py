@@ -34,7 +34,11 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("true contacts CBF / none (fixed bodies)", "steps with a robot surface inside the true person, with / without "
      "the CBF; in brackets, the CBF run's steps with the person inside a body no imitation joint moves (pelvis, "
      "legs): no controller avoids those"),
-    ("robot-caused (CBF)", "of the CBF run's contact steps, those in which the robot closed a touching pair > 1 mm/s"),
+    ("robot-caused / commanded (CBF)", "of the CBF run's contact steps, those in which the robot closed a touching "
+     "pair > 1 mm/s / of those, the ones in which the command u* itself closed it > 1 mm/s (the others: the servos "
+     "trailing or settling behind their command)"),
+    ("approaches / commanded (CBF)", "CBF run: steps at which the robot closed > 1 mm/s a pair whose true clearance "
+     "is below φ / of those, the ones the command u* closed too; in brackets, how far it closed in over them (mm)"),
     ("min true clearance (mm)", "CBF run: smallest robot–person capsule surface distance at the simulated joints"),
     ("min self h (mm)", "CBF run: smallest self-pair barrier at the simulated joints (true_min_h_self)"),
     ("lag (ms)", "CBF run: median delay of the simulated joints behind the true person's retargeted angles "
@@ -103,7 +107,8 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         cells = [
             f"{cbf['true_contacts_robot_human']} / {nominal['true_contacts_robot_human']} "
             f"({cbf['true_contacts_fixed_bodies']})",
-            str(cbf["robot_caused_contact_steps"]),
+            f"{cbf['robot_caused_contact_steps']} / {cbf['robot_caused_contact_steps_commanded']}",
+            f"{cbf['robot_approach_steps']} / {cbf['robot_approach_steps_commanded']} ({cbf['robot_approach_mm']:.1f})",
             _mm(cbf["true_min_clearance_human"]),
             _mm(cbf["true_min_h_self"]),
             _num(cbf["fidelity"]["lag_ms"], ".0f"),

@@ -8,6 +8,9 @@ against the pelvis, whatever the safety configuration monitors):
     clearance_i = d_i − (r_A + r_B)            (m, capsule surfaces, no margin φ)
     rate_i      = (∂d_i/∂q) q̇_sim = nᵀ J_pA q̇_sim   (m/s, the robot's own motion only: the
                                                       person's capsule has no Jacobian)
+    commanded_i = nᵀ J_pA u*                         (m/s, the same for the commanded velocity
+                                                      u*: what the filter asked for at this pose,
+                                                      apart from the servos trailing behind it)
 
 with n the unit normal from the person's (or the other link's) closest point toward the robot's
 (:mod:`services.safety.barriers.capsules`). A negative rate is the robot closing that pair. The rows come
@@ -56,11 +59,13 @@ def fixed_bodies(model: mujoco.MjModel, joint_names: tuple[str, ...]) -> frozens
 
 @dataclass(frozen=True)
 class StepTruth:
-    """One step: ``clearance`` and ``rate`` (M,) per truth row of :attr:`TruthProbe.names` (NaN
-    where the person's capsule is missing), the robot capsules at q_sim ``robot`` (7, 2, 3) m."""
+    """One step: ``clearance``, ``rate`` and ``commanded`` (M,) per truth row of
+    :attr:`TruthProbe.names` (NaN where the person's capsule is missing; ``commanded`` NaN
+    throughout when no command was given), the robot capsules at q_sim ``robot`` (7, 2, 3) m."""
 
     clearance: np.ndarray
     rate: np.ndarray
+    commanded: np.ndarray
     robot: np.ndarray
 
 
@@ -81,13 +86,19 @@ class TruthProbe:
         self.is_self: np.ndarray = np.concatenate([self.pairs.is_self, np.ones(len(self._static.row_names()), bool)])
 
     def measure(self, q_sim: np.ndarray, dq_sim: np.ndarray, capsules: np.ndarray, radii: np.ndarray,
-                valid: np.ndarray) -> StepTruth:
+                valid: np.ndarray, u: np.ndarray | None = None) -> StepTruth:
         """Clearances and rates at joints ``q_sim`` (8,) rad moving at ``dq_sim`` (8,) rad/s, the true
-        person's ``capsules`` (7, 2, 3) m with ``radii`` (7,) m where ``valid`` (7,)."""
+        person's ``capsules`` (7, 2, 3) m with ``radii`` (7,) m where ``valid`` (7,); ``u`` (8,) rad/s
+        the commanded velocity (None: ``commanded`` is NaN)."""
         self._barrier.set_external(capsules, radii, valid)
         endpoints, jacobians = self.kinematics.compute(q_sim)
         robot = endpoints.copy()
         rows = self._barrier.evaluate(endpoints, jacobians, gamma=1.0, phi=0.0)
         static = self._static.constraint_rows(q_sim, endpoints, jacobians, gamma=1.0, phi=0.0, lookahead=0.0)
-        rate = np.concatenate([np.where(rows.enabled, rows.A @ dq_sim, np.nan), static.A @ dq_sim])
-        return StepTruth(clearance=np.concatenate([rows.h, static.h]), rate=rate, robot=robot)
+
+        def rate_of(velocity: np.ndarray) -> np.ndarray:
+            return np.concatenate([np.where(rows.enabled, rows.A @ velocity, np.nan), static.A @ velocity])
+
+        commanded = np.full(len(self.names), np.nan) if u is None else rate_of(u)
+        return StepTruth(clearance=np.concatenate([rows.h, static.h]), rate=rate_of(dq_sim), commanded=commanded,
+                         robot=robot)

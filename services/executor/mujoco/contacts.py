@@ -162,8 +162,18 @@ class ContactMeter:
                 normal = d.geom_xpos[s] - d.geom_xpos[h]
                 normal = normal / max(float(np.linalg.norm(normal)), 1e-12)
             body = int(m.geom_bodyid[s])
-            mujoco.mj_jac(m, d, self._jacp, None, point, body)
-            closing = -float(normal @ (self._jacp @ d.qvel))
             found.append(SurfaceContact(self._body_names[body], self._capsule_of_geom[h], -float(dist), point,
-                                        normal, closing))
+                                        normal, self._closing(d, body, point, normal, d.qvel)))
         return tuple(found)
+
+    def closing_speed(self, data: mujoco.MjData, contact: SurfaceContact, qvel: np.ndarray) -> float:
+        """The speed (m/s) at which ``contact``'s robot point would move into the person if the
+        robot's joints moved at ``qvel`` (nv,) from its current pose: −nᵀ J_p(point) q̇, J_p the
+        translational Jacobian of the contact's point on its robot body (positive: closing). With
+        the simulated q̇ this is :attr:`SurfaceContact.closing_speed`."""
+        body = self._body_names.index(contact.robot_body)
+        return self._closing(data, body, contact.point, contact.normal, qvel)
+
+    def _closing(self, data: mujoco.MjData, body: int, point: np.ndarray, normal: np.ndarray, qvel: np.ndarray) -> float:
+        mujoco.mj_jac(self.model, data, self._jacp, None, point, body)
+        return -float(normal @ (self._jacp @ qvel))

@@ -284,3 +284,12 @@ class SimRobot:
         (:meth:`~services.executor.mujoco.contacts.ContactMeter.robot_human`)."""
         return self._meter.robot_human(self.data, person, self._human_placed[person], self._human_segments[person],
                                        self._human_radii[person])
+
+    def commanded_closing_speed(self, contact: SurfaceContact, dq: np.ndarray) -> float:
+        """The speed (m/s) at which ``contact``'s robot point would move into the person if the
+        imitation joints moved at ``dq`` (8,) rad/s and every other joint stood still, from the
+        current pose: −nᵀ J_p[:, I] dq (positive: closing). With the commanded velocity u* it tells
+        what the command did at a contact, apart from the servos trailing or settling behind it."""
+        qvel = np.zeros(self.model.nv)
+        qvel[self._dadr] = dq
+        return self._meter.closing_speed(self.data, contact, qvel)
