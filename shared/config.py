@@ -175,6 +175,13 @@ class GeometryName(str, Enum):
     BOX = "box"
 
 
+class IntrusionResponse(str, Enum):
+    """What the robot does while a person is inside a robot capsule's margin (services.safety.filter)."""
+
+    STOP = "stop"
+    RETREAT = "retreat"
+
+
 PositiveJointVector = Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
 NonNegativeJointVector = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
 
@@ -239,6 +246,15 @@ class SafetyConfig(_Section):
         "ISO/TS 15066 separation monitoring counts v_h·(T_r + T_s): camera latency 0.060 (exposure, readout, pose "
         "inference, transport) + one 30 Hz frame of hold 0.033 + the point filter's lag ≤ 0.016 (EMA τ = 0.03 s "
         "at 30 Hz; One Euro ≈ 0.009) ≈ 0.11",
+    )
+    on_intrusion: IntrusionResponse = Field(
+        default=IntrusionResponse.STOP,
+        description="while a person capsule is inside a robot capsule's margin (h < −1 mm on a person row): stop "
+        "(the protective stop of ISO/TS 15066 speed and separation monitoring: brake to rest within the acceleration "
+        "bound, never closer to any person capsule, no retreat demanded, imitation resumes once no person row is "
+        "inside) or retreat (the CBF's own answer: every violated row demands A u ≥ −γ h, the least total violation "
+        "first, then the target is rest). The stop moves the robot into the true person 3–5× less on the test "
+        "variants, at 11–30 % more contact steps, person-caused: README 'The intrusion stop'",
     )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
     lost_human_hold_s: float = Field(

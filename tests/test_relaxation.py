@@ -1,8 +1,10 @@
 """Prioritised relaxation: when a person moves into the robot faster than it can
 retreat, the self rows and joint barriers hold, every person row keeps at least A_i u ≥ min(b_i, 0)
 (the robot never closes in), the total violation is the least possible, and the problem is feasible
-by construction (u = 0, σ = max(b, 0)). Random states on the real robot model, real Pinocchio,
-DAQP and OSQP; the least violation is checked against SciPy's LP solver."""
+by construction (u = 0, σ = max(b, 0)); the relaxation's own tests run with
+``safety.on_intrusion: retreat``, where a person inside a margin is retreated from. With the default
+``stop`` that person stops the robot instead, never closer, no retreat. Random states on the real
+robot model, real Pinocchio, DAQP and OSQP; the least violation is checked against SciPy's LP solver."""
 
 from __future__ import annotations
 
@@ -41,9 +43,9 @@ def random_safe_state(p, rng: np.random.Generator) -> np.ndarray:
             return q
 
 
-def random_intrusion(p, rng: np.random.Generator):
+def random_intrusion(p, rng: np.random.Generator, *others):
     """A random joint state whose self rows and joint barriers hold, and a person's capsules pushed
-    into the margin of the robot's left forearm at 1–3 m/s toward it."""
+    into the margin of the robot's left forearm at 1–3 m/s toward it (in ``others``' barriers too)."""
     kin = p.kinematics
     q = random_safe_state(p, rng)
     endpoints, _ = kin.compute(q)
@@ -56,7 +58,8 @@ def random_intrusion(p, rng: np.random.Generator):
     toward = forearm.mean(axis=0) - capsules.mean(axis=1)
     speed = rng.uniform(1.0, 3.0)
     velocities = np.repeat((speed * toward / np.linalg.norm(toward, axis=1, keepdims=True))[:, None], 2, axis=1)
-    p.barrier.set_external(capsules, np.full(7, 0.06), np.ones(7, bool), velocities)
+    for pipeline in (p, *others):
+        pipeline.barrier.set_external(capsules, np.full(7, 0.06), np.ones(7, bool), velocities)
     return q
 
 
@@ -72,7 +75,7 @@ def least_violation(A, b, soft, lower, upper, relax_penalty: float) -> float:
 
 @pytest.mark.parametrize("backend", ["daqp", "osqp"])
 def test_random_intrusions_keep_self_rows_and_never_close_in_on_the_person(backend: str) -> None:
-    p = pipeline_for(backend)
+    p = pipeline_for(backend, on_intrusion="retreat")
     rng = np.random.default_rng(16)
     relaxed = 0
     for _ in range(40):
@@ -98,7 +101,7 @@ def test_the_relaxed_problem_is_feasible_by_construction_and_least_violating() -
     """On random states: u = 0, σ = max(b, 0) satisfies every constraint; the filter's total
     violation equals the LP's minimum (without the self margin, which only shifts some rows' b:
     :func:`test_self_rows_aim_the_margin_beyond_phi`)."""
-    p = pipeline_for(self_margin=0.0)
+    p = pipeline_for(self_margin=0.0, on_intrusion="retreat")
     rng = np.random.default_rng(61)
     params = p.filter.params
     checked = 0
@@ -129,7 +132,7 @@ def test_a_person_giving_way_stops_the_imitation_the_retreat_does_not_need() -> 
     holds 0, so u = 0 there) instead of following u_ref. Without the self margin, which lets a hard
     row inside it push out (:func:`test_self_rows_aim_the_margin_beyond_phi`), so that the rows at
     their bound are those of ``stacked``."""
-    p = pipeline_for(self_margin=0.0)
+    p = pipeline_for(self_margin=0.0, on_intrusion="retreat")
     rng = np.random.default_rng(17)
     names = p.kinematics.joint_names
     right = [names.index(f"right_{j}_joint") for j in ("shoulder_pitch", "shoulder_roll", "elbow")]
@@ -171,6 +174,32 @@ def person_in_the_legs(p, rng: np.random.Generator, q: np.ndarray, inside: bool 
     p.barrier.set_external(capsules, np.full(7, 0.05), np.arange(7) == 0 if not inside else np.ones(7, bool), velocities)
 
 
+def assert_stops_without_retreat(p, q: np.ndarray, q_nom: np.ndarray, u_prev: np.ndarray) -> None:
+    """From ``q`` moving at ``u_prev`` with the imitation pulling to ``q_nom`` and the person the
+    barrier holds: the step is a protective stop aiming at rest (u_ref = 0), finite, not HOLD; the
+    hard rows hold and no person row is approached faster than braking as hard as the acceleration
+    bound allows (its floor min(b_i, 0), retreat demands b_i > 0 included: none is demanded); the
+    robot is at rest within 0.5 s."""
+    A, b, soft = stacked(p, q)
+    p.filter.reset(q)
+    p.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
+    bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, DT))  # noqa: SLF001
+    brake = np.clip(0.0, bounded_lower, bounded_upper)  # the hardest braking the bound allows
+    result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
+    assert result.protective_stop and np.isfinite(result.u).all() and result.mode is not SafetyMode.HOLD
+    np.testing.assert_array_equal(result.u_ref, 0.0)
+    lhs = A @ result.u
+    assert (lhs[~soft] >= b[~soft] - TOL).all(), "a self row or joint barrier gave way"
+    if "accel_max" not in result.gave_way:
+        floor = np.minimum(np.minimum(b[soft], 0.0), A[soft] @ brake)
+        assert (lhs[soft] >= floor - TOL).all(), "the robot closed in on a person capsule"
+    for _ in range(round(0.5 / DT)):
+        result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
+        if not np.abs(result.u).max() > 1e-6:
+            break
+    np.testing.assert_allclose(result.u, 0.0, atol=1e-6)  # at rest within 0.5 s
+
+
 def test_a_person_at_the_legs_stops_the_robot_without_a_retreat_on_random_states() -> None:
     """Protective stop at the fixed body: on random states (the hard rows holding) with the robot
     moving and the imitation pulling anywhere, a person inside the margin of a thigh (which no
@@ -181,35 +210,55 @@ def test_a_person_at_the_legs_stops_the_robot_without_a_retreat_on_random_states
     still. The same person 0.3 m in front of the thigh does not stop it standing or walking toward
     it at 0.5 m/s, but does at 2 m/s: the row anticipates them within the look-ahead
     (h < a (T + 1/γ)), so the robot brakes before they arrive. With the shipped self margin (its
-    push-out of a row inside the band keeps no joint moving: at rest within 0.5 s all the same)."""
-    p = pipeline_for()
+    push-out of a row inside the band keeps no joint moving: at rest within 0.5 s all the same),
+    and ``on_intrusion: retreat``, so that only this rule stops the robot (at a random state the
+    person's torso in front of the legs may be inside an arm's margin, which the default intrusion
+    stop answers too)."""
+    p = pipeline_for(on_intrusion="retreat")
     rng = np.random.default_rng(26)
     kin = p.kinematics
     for _ in range(25):
         q = random_safe_state(p, rng)
         person_in_the_legs(p, rng, q)
-        A, b, soft = stacked(p, q)
-        p.filter.reset(q)
-        p.filter._u_prev = 0.5 * rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)  # noqa: SLF001 (moving)
-        bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, DT))  # noqa: SLF001
-        brake = np.clip(0.0, bounded_lower, bounded_upper)  # the hardest braking the bound allows
         q_nom = rng.uniform(kin.q_min, kin.q_max)
-        result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
-        assert result.protective_stop and np.isfinite(result.u).all() and result.mode is not SafetyMode.HOLD
-        np.testing.assert_array_equal(result.u_ref, 0.0)
-        lhs = A @ result.u
-        assert (lhs[~soft] >= b[~soft] - TOL).all(), "a self row or joint barrier gave way"
-        if "accel_max" not in result.gave_way:  # closing no faster than braking as hard as the bound allows
-            floor = np.minimum(np.minimum(b[soft], 0.0), A[soft] @ brake)
-            assert (lhs[soft] >= floor - TOL).all(), "the robot closed in on a person capsule"
-        for _ in range(round(0.5 / DT)):
-            result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
-            if not np.abs(result.u).max() > 1e-6:
-                break
-        np.testing.assert_allclose(result.u, 0.0, atol=1e-6)  # at rest within 0.5 s
+        assert_stops_without_retreat(p, q, q_nom, 0.5 * rng.uniform(-p.filter.params.u_max, p.filter.params.u_max))
         for walking, stops in ((0.0, False), (0.5, False), (2.0, True)):  # within the look-ahead at 2 m/s
             person_in_the_legs(p, rng, p.filter.q_cbf, inside=False, walking=walking)
             assert p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop is stops, walking
+
+
+def test_a_person_inside_a_margin_stops_the_robot_without_a_retreat_on_random_states() -> None:
+    """The intrusion stop (``safety.on_intrusion: stop``, the default): a person pushed into the
+    left forearm's margin at 1–3 m/s, on random states with the robot moving and the imitation
+    pulling anywhere: the step is a protective stop aiming at rest (u_ref = 0), the hard rows hold,
+    no person row is approached faster than braking within the acceleration bound (its floor
+    min(b_i, 0) against the rows as the barrier wrote them, retreat demands b_i > 0 included: none
+    is demanded), the output is finite and the robot is at rest within 0.5 s. The same states with
+    ``retreat`` are no stop, and some violated row is retreated from; the person outside every
+    margin stops nothing. (With ``retreat`` the person may still reach a thigh's margin, which
+    stops the robot whatever ``on_intrusion`` says: those states are not counted.)"""
+    stop, retreat = pipeline_for(), pipeline_for(on_intrusion="retreat")
+    rng = np.random.default_rng(28)
+    retreated = 0
+    for _ in range(25):
+        q = random_intrusion(stop, rng, retreat)
+        A, b, soft = stacked(stop, q)
+        assert stop.barrier.last_rows.min_h(self_rows=False) < -1e-3  # inside the forearm's margin
+        q_nom = rng.uniform(stop.kinematics.q_min, stop.kinematics.q_max)
+        assert_stops_without_retreat(stop, q, q_nom, 0.5 * rng.uniform(-stop.filter.params.u_max, stop.filter.params.u_max))
+        retreat.filter.reset(q)
+        result = retreat.filter.step(q_nom, DT, np.zeros_like(q_nom))
+        if result.protective_stop:  # the person also reaches a thigh, which no joint moves: the other stop
+            continue
+        violated = soft & (b > 1e-6)
+        retreated += bool((A[violated] @ result.u > 1e-6).any())
+    assert retreated >= 10, "with retreat, violated rows must be retreated from"
+    alone = pipeline_for()
+    alone_at(alone, alone.kinematics.q_home)
+    endpoints, _ = alone.kinematics.compute(alone.kinematics.q_home)
+    far = endpoints[FOREARM].mean(axis=0) + [0.5, 0.0, 0.0]  # 0.5 m in front of the forearm
+    alone.barrier.set_external(np.repeat(np.stack([far, far + [0.0, 0.0, 0.3]])[None], 7, axis=0), np.full(7, 0.05))
+    assert not alone.filter.step(alone.kinematics.q_home, DT).protective_stop
 
 
 def _slide_into_the_torso(margin: float) -> tuple[float, set[str]]:
@@ -408,7 +457,7 @@ def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> 
     hold; within the bound no person row closes faster than braking as hard as the bound allows
     (A_i u ≥ min(b_i, 0, A_i ū), ū the bounded box's point nearest rest); when the bound gave way
     it is named."""
-    p = pipeline_for()
+    p = pipeline_for(on_intrusion="retreat")
     rng = np.random.default_rng(seed)
     gave = 0
     for _ in range(30):

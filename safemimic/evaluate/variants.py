@@ -1,0 +1,117 @@
+"""Test variants of recordings: the same motion turned in place, or carried into the robot.
+
+The development clips are four; the product meets other people doing other things (turns, walking,
+someone stepping into the robot). ``python -m safemimic.evaluate.variants IN OUT`` writes, for every
+recording ``IN/X.npz`` (the evaluator's ``names``/``t``/``xyz`` format, z up, metres), two variants
+into ``OUT`` with every other field unchanged:
+
+- ``X_turn.npz``: the whole skeleton rotated about the vertical through the first frame's pelvis by
+  an angle growing linearly from 0 at the first frame to ``--turns`` · 2π at the last (a person
+  turning in place while moving; one turn by default);
+- ``X_stepin.npz``: the whole skeleton carried along the direction the person faces in the first
+  frame (horizontal, (left shoulder − right shoulder) × z) by a distance growing linearly from 0 to
+  ``--step-m`` (1 m by default) at the last frame: placed facing the robot, the person walks into it.
+
+Then ``safemimic evaluate --suite OUT`` evaluates them like any recording. The variants are
+geometric transforms of real motion, not new recordings: they test what the development clips do
+not show (a person's back to the camera, a body moving through the robot), never a constant's value.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+#: Keypoints a variant needs: the pelvis (turn axis) and the shoulders (facing direction).
+NEEDED = ("pelvis", "left_shoulder", "right_shoulder")
+
+
+def facing(xyz: np.ndarray, names: list[str]) -> np.ndarray:
+    """The horizontal unit vector the person faces in frame ``xyz`` (K, 3): (left − right shoulder) × z."""
+    lateral = xyz[names.index("left_shoulder")] - xyz[names.index("right_shoulder")]
+    forward = np.cross(lateral, [0.0, 0.0, 1.0])
+    forward[2] = 0.0
+    norm = float(np.linalg.norm(forward))
+    if not norm > 1e-6:
+        raise ValueError("the first frame's shoulders are on top of each other: no facing direction")
+    return forward / norm
+
+
+def turned(xyz: np.ndarray, names: list[str], turns: float = 1.0) -> np.ndarray:
+    """``xyz`` (T, K, 3) rotated about the vertical through frame 0's pelvis by 2π · turns · k / (T − 1) at frame k."""
+    centre = xyz[0, names.index("pelvis")].copy()
+    centre[2] = 0.0
+    angle = 2.0 * np.pi * turns * np.linspace(0.0, 1.0, len(xyz))
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    rel = xyz - centre
+    out = np.empty_like(xyz)
+    out[..., 0] = c * rel[..., 0] - s * rel[..., 1]
+    out[..., 1] = s * rel[..., 0] + c * rel[..., 1]
+    out[..., 2] = rel[..., 2]
+    return out + centre
+
+
+def stepped_in(xyz: np.ndarray, names: list[str], step_m: float = 1.0) -> np.ndarray:
+    """``xyz`` (T, K, 3) carried along frame 0's facing direction by step_m · k / (T − 1) at frame k."""
+    return xyz + np.linspace(0.0, step_m, len(xyz))[:, None, None] * facing(xyz[0], names)
+
+
+def read_recording(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Every field of recording ``path`` and its keypoint names; ValueError when it cannot make variants."""
+    with np.load(path, allow_pickle=False) as data:
+        fields = {key: data[key] for key in data.files}
+    if "xyz" not in fields or "names" not in fields:
+        raise ValueError(f"{path}: not a recording (needs 'names' and 'xyz')")
+    names = [str(n) for n in fields["names"]]
+    xyz = np.asarray(fields["xyz"], dtype=np.float64)
+    if xyz.ndim != 3 or xyz.shape[1:] != (len(names), 3) or len(xyz) < 2:
+        raise ValueError(f"{path}: xyz must be (frames ≥ 2, {len(names)}, 3), got {xyz.shape}")
+    missing = [n for n in NEEDED if n not in names]
+    if missing:
+        raise ValueError(f"{path}: no {', '.join(missing)} keypoint")
+    if not np.isfinite(xyz[0, [names.index(n) for n in NEEDED]]).all():
+        raise ValueError(f"{path}: the first frame's pelvis and shoulders must be finite")
+    fields["xyz"] = xyz
+    return fields, names
+
+
+def write_variants(source: Path, out: Path, turns: float = 1.0, step_m: float = 1.0) -> list[Path]:
+    """The two variants of recording ``source`` written into ``out``; their paths."""
+    fields, names = read_recording(source)
+    written = []
+    for suffix, xyz in (("turn", turned(fields["xyz"], names, turns)), ("stepin", stepped_in(fields["xyz"], names, step_m))):
+        path = out / f"{source.stem}_{suffix}.npz"
+        np.savez(path, **{**fields, "xyz": xyz})
+        written.append(path)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m safemimic.evaluate.variants", description=__doc__.split("\n\n")[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("source", type=Path, help="a recording (.npz) or a folder of them")
+    parser.add_argument("out", type=Path, help="folder for the variants (created)")
+    parser.add_argument("--turns", type=float, default=1.0, help="full turns in place over the clip (default 1)")
+    parser.add_argument("--step-m", type=float, default=1.0, help="distance walked forward over the clip, m (default 1)")
+    args = parser.parse_args(argv)
+    sources = sorted(args.source.glob("*.npz")) if args.source.is_dir() else [args.source]
+    if not sources:
+        print(f"error: no .npz recording in {args.source}", file=sys.stderr)
+        return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        for source in sources:
+            for path in write_variants(source, args.out, args.turns, args.step_m):
+                print(f"wrote {path}")
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

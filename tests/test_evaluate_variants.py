@@ -1,0 +1,52 @@
+"""Test variants of a recording (``python -m safemimic.evaluate.variants``): a turn in place keeps
+every keypoint's height and distance from the turning axis and ends where it began, a step-in
+carries the person along the direction they face by exactly the step; bad input is refused."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safemimic.evaluate.variants import main, read_recording
+from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
+from tests.test_evaluate_truth import raise_recording, write_recording
+
+PELVIS = KEYPOINT_INDEX["pelvis"]
+
+
+def test_a_turn_keeps_heights_and_radii_and_a_step_in_walks_where_the_person_faces(tmp_path: Path) -> None:
+    xyz = raise_recording(2.0)
+    xyz += [0.3, -0.2, 0.0]  # off the origin: the axis is the first pelvis, not the world's
+    source = write_recording(tmp_path / "raise.npz", xyz)
+    assert main([str(source), str(tmp_path / "out"), "--step-m", "0.8"]) == 0
+    turn, _ = read_recording(tmp_path / "out" / "raise_turn.npz")
+    step, _ = read_recording(tmp_path / "out" / "raise_stepin.npz")
+    axis = xyz[0, PELVIS, :2]
+    radius = np.linalg.norm(xyz[..., :2] - axis, axis=-1)
+    np.testing.assert_allclose(np.linalg.norm(turn["xyz"][..., :2] - axis, axis=-1), radius, atol=1e-9)
+    np.testing.assert_allclose(turn["xyz"][..., 2], xyz[..., 2], atol=1e-12)
+    np.testing.assert_allclose(turn["xyz"][[0, -1]], xyz[[0, -1]], atol=1e-9)  # 0 and one full turn
+    half = len(xyz) // 2
+    angle = 2.0 * np.pi * half / (len(xyz) - 1)
+    wrist = KEYPOINT_INDEX["left_wrist"]
+    before, after = xyz[half, wrist, :2] - axis, turn["xyz"][half, wrist, :2] - axis
+    turned_by = np.arctan2(before[0] * after[1] - before[1] * after[0], before @ after)
+    assert turned_by % (2 * np.pi) == pytest.approx(angle % (2 * np.pi), abs=1e-9)
+    shift = step["xyz"][-1] - xyz[-1]
+    np.testing.assert_allclose(shift, np.repeat(shift[:1], len(KEYPOINT_NAMES), axis=0), atol=1e-12)  # rigid
+    left, right = xyz[0, KEYPOINT_INDEX["left_shoulder"]], xyz[0, KEYPOINT_INDEX["right_shoulder"]]
+    assert np.linalg.norm(shift[0]) == pytest.approx(0.8) and shift[0, 2] == 0.0
+    assert shift[0] @ np.cross(left - right, [0.0, 0.0, 1.0]) > 0  # forward: left × up, away from the back
+    for key in ("t", "names", "fps", "conf"):
+        np.testing.assert_array_equal(turn[key], np.load(source)[key])
+
+
+def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    np.savez(tmp_path / "bad.npz", names=np.array(["head"]), xyz=np.zeros((3, 1, 3)))
+    assert main([str(tmp_path / "bad.npz"), str(tmp_path / "out")]) == 2
+    assert "no pelvis, left_shoulder, right_shoulder keypoint" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main([str(tmp_path / "empty"), str(tmp_path / "out")]) == 2
+    assert "no .npz recording" in capsys.readouterr().err
