@@ -461,6 +461,8 @@ class SafetyFilter:
         """Whether a person capsule is inside a robot capsule's margin: some enabled robot–person
         row of the pair barrier's ``rows`` has h < −:data:`VIOLATION_TOL` (the intrusion stop, module
         docstring)."""
+        if not rows.min_h_all < -VIOLATION_TOL:  # the smallest h of all enabled rows: none is inside
+            return False
         low = rows.min_h(self_rows=False)
         return low is not None and low < -VIOLATION_TOL
 
