@@ -171,7 +171,7 @@ def test_health_and_config_read(api: ApiServer) -> None:
     safety = body["safety"]
     # the names, mapped onto the configuration explicitly
     assert set(safety) == {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "dt", "enabled_pair_groups", "capsule_radii", "human_velocity_term",
-                           "geometry", "sphere_k"}
+                           "geometry", "sphere_k", "on_intrusion"}
     assert safety["dt"] == pytest.approx(1.0 / body["config"]["safety"]["rate_hz"])
     assert safety["k"] == body["config"]["safety"]["gain"] and safety["w"] == body["config"]["safety"]["weights"]
     assert set(body["retarget"]) == {"S", "b", "q_home", "theta_home", "mirror", "method"}
@@ -242,6 +242,7 @@ def test_writes_need_the_token(api: ApiServer, method: str, path: str, body: dic
         ("/api/config/safety", {"capsule_radii": {"robot": {"nose": 0.1}}}, "capsule_radii"),
         ("/api/config/safety", {"capsule_radii": {"human": {"torso": 3.0}}}, "capsule_radii"),
         ("/api/config/safety", {"human_velocity_term": "maybe"}, "human_velocity_term"),
+        ("/api/config/safety", {"on_intrusion": "flee"}, "on_intrusion"),
         ("/api/config/safety", {"rate_hz": 100.0}, "rate_hz"),
         ("/api/config/retarget", {"S": [1.0] * 8 + [1.0]}, "S"),
         ("/api/config/retarget", {"b": [9.0] * 8}, "b"),
@@ -366,6 +367,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
         "enabled_pair_groups": ["human", "self_arms"],
         "capsule_radii": {"robot": {"left_forearm": 0.061, "torso": 0.12}, "human": {"torso": 0.16, "forearm": 0.055}},
         "human_velocity_term": False,
+        "on_intrusion": "retreat",
     }
     assert api.http.patch("/api/config/safety", json=patch, headers=AUTH).status_code == 200
     conf = api.http.get("/api/config").json()["config"]
@@ -377,6 +379,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
     assert conf["human"]["torso_radius"] == 0.16 and conf["human"]["forearm_radius"] == 0.055
     assert conf["human"]["thigh_radius"] == load_config(environ={}).human.thigh_radius
     assert conf["safety"]["human_velocity_term"] is False
+    assert conf["safety"]["on_intrusion"] == "retreat" and api.http.get("/api/config").json()["safety"]["on_intrusion"] == "retreat"
 
     # null: back to the default (symmetric bounds, the robot description's radius)
     reset = {"u_min": None, "capsule_radii": {"robot": {"torso": None}}}

@@ -25,6 +25,7 @@ from shared.config import (
     CapsuleRadius,
     GeometryName,
     HumanConfig,
+    IntrusionResponse,
     PairGroup,
     RetargetMethod,
     RetargetingConfig,
@@ -93,6 +94,7 @@ SAFETY_FIELDS: dict[str, str] = {
     "human_velocity_term": "safety.human_velocity_term",
     "geometry": "safety.geometry",
     "sphere_k": "safety.sphere_k",
+    "on_intrusion": "safety.on_intrusion",
 }
 #: PATCH /api/config/retarget field → configuration field (dotted path).
 RETARGET_FIELDS: dict[str, str] = {
@@ -170,6 +172,9 @@ class SafetyPatch(_Patch):
     capsule_radii: CapsuleRadiiPatch = None
     human_velocity_term: StrictBool = Field(None, description="use the person's measured capsule velocities as a known ∂h/∂t")
     geometry: GeometryName = Field(None, description="collision geometry of the CBF rows: capsule | spheres | box (paper Table I)")
+    on_intrusion: IntrusionResponse = Field(
+        None, description="while a person is inside a robot capsule's margin: stop (protective stop, no retreat) | retreat"
+    )
     sphere_k: Annotated[_like(SafetyConfig, "sphere_k"), BeforeValidator(_whole_number)] = Field(
         None, description="spheres: levels of subsampling k"
     )
@@ -182,6 +187,8 @@ class SafetyPatch(_Patch):
             values[SAFETY_FIELDS["dt"]] = 1.0 / self.dt
         if "geometry" in given:
             values[SAFETY_FIELDS["geometry"]] = self.geometry.value
+        if "on_intrusion" in given:
+            values[SAFETY_FIELDS["on_intrusion"]] = self.on_intrusion.value
         if "enabled_pair_groups" in given:
             values[SAFETY_FIELDS["enabled_pair_groups"]] = [g.value for g in PairGroup if g in self.enabled_pair_groups]
         radii = self.capsule_radii
@@ -248,6 +255,7 @@ class SafetyParams(_View):
     human_velocity_term: bool
     geometry: GeometryName
     sphere_k: int
+    on_intrusion: IntrusionResponse
 
     @classmethod
     def from_config(cls, conf: StackConfig) -> SafetyParams:
@@ -263,6 +271,7 @@ class SafetyParams(_View):
             human_velocity_term=s.human_velocity_term,
             geometry=s.geometry,
             sphere_k=s.sphere_k,
+            on_intrusion=s.on_intrusion,
         )
 
 
