@@ -1,6 +1,8 @@
 """Test variants of a recording (``python -m safemimic.evaluate.variants``): a turn in place keeps
 every keypoint's height and distance from the turning axis and ends where it began, a step-in
-carries the person along the direction they face by exactly the step; bad input is refused."""
+carries the person along the direction they face by exactly the step, a side-step towards their
+right, a scaled person keeps the floor point below the pelvis and scales every distance; bad input
+is refused."""
 
 from __future__ import annotations
 
@@ -43,6 +45,30 @@ def test_a_turn_keeps_heights_and_radii_and_a_step_in_walks_where_the_person_fac
         np.testing.assert_array_equal(turn[key], np.load(source)[key])
 
 
+def test_a_side_step_goes_right_and_a_scaled_person_grows_about_the_floor_below_the_pelvis(tmp_path: Path) -> None:
+    xyz = raise_recording(2.0) + [0.3, -0.2, 0.0]
+    source = write_recording(tmp_path / "raise.npz", xyz)
+    assert main([str(source), str(tmp_path / "out"), "--side-m", "0.4", "--scales", "0.8,1.25"]) == 0
+    written = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert written == ["raise_scale080.npz", "raise_scale125.npz", "raise_sidestep.npz", "raise_stepin.npz",
+                       "raise_turn.npz"]
+    side, _ = read_recording(tmp_path / "out" / "raise_sidestep.npz")
+    shift = side["xyz"][-1] - xyz[-1]
+    np.testing.assert_allclose(shift, np.repeat(shift[:1], len(KEYPOINT_NAMES), axis=0), atol=1e-12)  # rigid
+    left, right = xyz[0, KEYPOINT_INDEX["left_shoulder"]], xyz[0, KEYPOINT_INDEX["right_shoulder"]]
+    lateral = (left - right)[:2] / np.linalg.norm((left - right)[:2])
+    assert np.linalg.norm(shift[0]) == pytest.approx(0.4) and shift[0, 2] == 0.0
+    assert shift[0, :2] @ lateral == pytest.approx(-0.4, abs=1e-9)  # all of it towards the right
+    foot = np.array([*xyz[0, PELVIS, :2], 0.0])
+    for name, factor in (("raise_scale080.npz", 0.8), ("raise_scale125.npz", 1.25)):
+        big, _ = read_recording(tmp_path / "out" / name)
+        np.testing.assert_allclose(big["xyz"] - foot, factor * (xyz - foot), atol=1e-12)
+        assert big["xyz"][0, PELVIS, :2] == pytest.approx(xyz[0, PELVIS, :2])  # stands where the person stood
+        np.testing.assert_allclose(big["xyz"][..., 2], factor * xyz[..., 2], atol=1e-12)  # the floor stays z = 0
+    assert main([str(source), str(tmp_path / "none"), "--scales", ""]) == 0
+    assert not list((tmp_path / "none").glob("*_scale*"))
+
+
 def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     np.savez(tmp_path / "bad.npz", names=np.array(["head"]), xyz=np.zeros((3, 1, 3)))
     assert main([str(tmp_path / "bad.npz"), str(tmp_path / "out")]) == 2
@@ -50,3 +76,8 @@ def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.
     (tmp_path / "empty").mkdir()
     assert main([str(tmp_path / "empty"), str(tmp_path / "out")]) == 2
     assert "no .npz recording" in capsys.readouterr().err
+    for bad in ("0.9,-1", "big", "nan"):
+        with pytest.raises(SystemExit) as exit_:
+            main([str(tmp_path / "bad.npz"), str(tmp_path / "out"), "--scales", bad])
+        assert exit_.value.code == 2
+        assert "scales" in capsys.readouterr().err

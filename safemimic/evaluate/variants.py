@@ -1,8 +1,9 @@
-"""Test variants of recordings: the same motion turned in place, or carried into the robot.
+"""Test variants of recordings: the same motion turned in place, carried into the robot, or by a
+taller or shorter person.
 
 The development clips are four; the product meets other people doing other things (turns, walking,
 someone stepping into the robot). ``python -m safemimic.evaluate.variants IN OUT`` writes, for every
-recording ``IN/X.npz`` (the evaluator's ``names``/``t``/``xyz`` format, z up, metres), two variants
+recording ``IN/X.npz`` (the evaluator's ``names``/``t``/``xyz`` format, z up, metres), these variants
 into ``OUT`` with every other field unchanged:
 
 - ``X_turn.npz``: the whole skeleton rotated about the vertical through the first frame's pelvis by
@@ -10,7 +11,14 @@ into ``OUT`` with every other field unchanged:
   turning in place while moving; one turn by default);
 - ``X_stepin.npz``: the whole skeleton carried along the direction the person faces in the first
   frame (horizontal, (left shoulder − right shoulder) × z) by a distance growing linearly from 0 to
-  ``--step-m`` (1 m by default) at the last frame: placed facing the robot, the person walks into it.
+  ``--step-m`` (1 m by default) at the last frame: placed facing the robot, the person walks into it;
+- ``X_sidestep.npz``: the same, carried towards the person's right (the facing direction turned
+  −90° about z) by up to ``--side-m`` (0.5 m by default): placed side by side (the robot on the
+  person's right, 0.70 m away) they step sideways into the robot; facing it, they walk across it;
+- ``X_scaleNNN.npz`` for each factor s of ``--scales`` (0.85 and 1.15 by default; NNN = 100 s): the
+  whole skeleton scaled by s about the floor point below the first frame's pelvis (a shorter or
+  taller person doing the same motion: longer arms reach further, a taller body is closer to the
+  robot's shoulders; the motion's speeds scale with it).
 
 Then ``safemimic evaluate --suite OUT`` evaluates them like any recording. The variants are
 geometric transforms of real motion, not new recordings: they test what the development clips do
@@ -32,8 +40,7 @@ NEEDED = ("pelvis", "left_shoulder", "right_shoulder")
 def facing(xyz: np.ndarray, names: list[str]) -> np.ndarray:
     """The horizontal unit vector the person faces in frame ``xyz`` (K, 3): (left − right shoulder) × z."""
     lateral = xyz[names.index("left_shoulder")] - xyz[names.index("right_shoulder")]
-    forward = np.cross(lateral, [0.0, 0.0, 1.0])
-    forward[2] = 0.0
+    forward = np.cross(lateral, [0.0, 0.0, 1.0])  # horizontal: the cross product with z has no z component
     norm = float(np.linalg.norm(forward))
     if not norm > 1e-6:
         raise ValueError("the first frame's shoulders are on top of each other: no facing direction")
@@ -59,6 +66,22 @@ def stepped_in(xyz: np.ndarray, names: list[str], step_m: float = 1.0) -> np.nda
     return xyz + np.linspace(0.0, step_m, len(xyz))[:, None, None] * facing(xyz[0], names)
 
 
+def side_stepped(xyz: np.ndarray, names: list[str], side_m: float = 0.5) -> np.ndarray:
+    """``xyz`` (T, K, 3) carried towards frame 0's right (the facing direction turned −90°
+    about z) by side_m · k / (T − 1) at frame k."""
+    right = np.cross(facing(xyz[0], names), [0.0, 0.0, 1.0])
+    return xyz + np.linspace(0.0, side_m, len(xyz))[:, None, None] * right
+
+
+def scaled(xyz: np.ndarray, names: list[str], factor: float) -> np.ndarray:
+    """``xyz`` (T, K, 3) scaled by ``factor`` about the floor point (z = 0) below frame 0's pelvis."""
+    if not factor > 0.0:
+        raise ValueError(f"a scale must be > 0, got {factor}")
+    centre = xyz[0, names.index("pelvis")].copy()
+    centre[2] = 0.0
+    return centre + factor * (xyz - centre)
+
+
 def read_recording(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
     """Every field of recording ``path`` and its keypoint names; ValueError when it cannot make variants."""
     with np.load(path, allow_pickle=False) as data:
@@ -78,15 +101,37 @@ def read_recording(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
     return fields, names
 
 
-def write_variants(source: Path, out: Path, turns: float = 1.0, step_m: float = 1.0) -> list[Path]:
-    """The two variants of recording ``source`` written into ``out``; their paths."""
+def variants(xyz: np.ndarray, names: list[str], turns: float = 1.0, step_m: float = 1.0, side_m: float = 0.5,
+             scales: tuple[float, ...] = (0.85, 1.15)) -> dict[str, np.ndarray]:
+    """Every variant of ``xyz`` (T, K, 3) by its file name suffix (module docstring)."""
+    out = {"turn": turned(xyz, names, turns), "stepin": stepped_in(xyz, names, step_m),
+           "sidestep": side_stepped(xyz, names, side_m)}
+    for factor in scales:
+        out[f"scale{round(100 * factor):03d}"] = scaled(xyz, names, factor)
+    return out
+
+
+def write_variants(source: Path, out: Path, turns: float = 1.0, step_m: float = 1.0, side_m: float = 0.5,
+                   scales: tuple[float, ...] = (0.85, 1.15)) -> list[Path]:
+    """The variants of recording ``source`` written into ``out``; their paths."""
     fields, names = read_recording(source)
     written = []
-    for suffix, xyz in (("turn", turned(fields["xyz"], names, turns)), ("stepin", stepped_in(fields["xyz"], names, step_m))):
+    for suffix, xyz in variants(fields["xyz"], names, turns, step_m, side_m, scales).items():
         path = out / f"{source.stem}_{suffix}.npz"
         np.savez(path, **{**fields, "xyz": xyz})
         written.append(path)
     return written
+
+
+def _scales(text: str) -> tuple[float, ...]:
+    """``--scales``: comma-separated positive factors (argparse type)."""
+    try:
+        factors = tuple(float(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
+    if not all(f > 0.0 and np.isfinite(f) for f in factors):
+        raise argparse.ArgumentTypeError(f"scales must be finite and > 0: {text!r}")
+    return factors
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,6 +142,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", type=Path, help="folder for the variants (created)")
     parser.add_argument("--turns", type=float, default=1.0, help="full turns in place over the clip (default 1)")
     parser.add_argument("--step-m", type=float, default=1.0, help="distance walked forward over the clip, m (default 1)")
+    parser.add_argument("--side-m", type=float, default=0.5,
+                        help="distance stepped towards the person's right over the clip, m (default 0.5)")
+    parser.add_argument("--scales", type=_scales, default=(0.85, 1.15),
+                        help="comma-separated size factors of the scaled variants (default 0.85,1.15; '' for none)")
     args = parser.parse_args(argv)
     sources = sorted(args.source.glob("*.npz")) if args.source.is_dir() else [args.source]
     if not sources:
@@ -105,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     try:
         for source in sources:
-            for path in write_variants(source, args.out, args.turns, args.step_m):
+            for path in write_variants(source, args.out, args.turns, args.step_m, args.side_m, args.scales):
                 print(f"wrote {path}")
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
