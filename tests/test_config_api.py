@@ -380,6 +380,8 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
     assert conf["human"]["thigh_radius"] == load_config(environ={}).human.thigh_radius
     assert conf["safety"]["human_velocity_term"] is False
     assert conf["safety"]["on_intrusion"] == "retreat" and api.http.get("/api/config").json()["safety"]["on_intrusion"] == "retreat"
+    assert api.http.patch("/api/config/safety", json={"on_intrusion": "stop_on_give_way"}, headers=AUTH).status_code == 200
+    assert api.http.get("/api/config").json()["safety"]["on_intrusion"] == "stop_on_give_way"
 
     # null: back to the default (symmetric bounds, the robot description's radius)
     reset = {"u_min": None, "capsule_radii": {"robot": {"torso": None}}}

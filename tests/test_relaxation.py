@@ -3,7 +3,8 @@ retreat, the self rows and joint barriers hold, every person row keeps at least 
 (the robot never closes in), the total violation is the least possible, and the problem is feasible
 by construction (u = 0, σ = max(b, 0)); the relaxation's own tests run with
 ``safety.on_intrusion: retreat``, where a person inside a margin is retreated from. With the default
-``stop`` that person stops the robot instead, never closer, no retreat. Random states on the real
+``stop`` that person stops the robot instead, never closer, no retreat; with ``stop_on_give_way`` so does one
+moving in faster than the robot can retreat. Random states on the real
 robot model, real Pinocchio, DAQP and OSQP; the least violation is checked against SciPy's LP solver."""
 
 from __future__ import annotations
@@ -259,6 +260,64 @@ def test_a_person_inside_a_margin_stops_the_robot_without_a_retreat_on_random_st
     far = endpoints[FOREARM].mean(axis=0) + [0.5, 0.0, 0.0]  # 0.5 m in front of the forearm
     alone.barrier.set_external(np.repeat(np.stack([far, far + [0.0, 0.0, 0.3]])[None], 7, axis=0), np.full(7, 0.05))
     assert not alone.filter.step(alone.kinematics.q_home, DT).protective_stop
+
+
+def person_rushing_in(p, rng: np.random.Generator, q: np.ndarray, *others) -> bool:
+    """At ``q``: one person capsule (the torso's slot) 1–6 cm outside the left forearm's margin, rushing
+    at it at 4–8 m/s (faster than any retreat: its row asks for more than the velocity box gives),
+    the others far away. False when the capsule lands inside some other robot capsule's margin."""
+    endpoints, _ = p.kinematics.compute(q)
+    a, b = endpoints[FOREARM]
+    direction = rng.normal(size=3)
+    direction -= (direction @ (b - a)) / ((b - a) @ (b - a)) * (b - a)  # across the forearm's axis
+    direction /= np.linalg.norm(direction)
+    radius, gap = 0.06, rng.uniform(0.01, 0.06)
+    reach = p.barrier.robot_radii[FOREARM] + p.filter.params.phi + radius + p.barrier.person_margin + gap
+    centre = 0.5 * (a + b) + reach * direction
+    capsules = np.repeat(np.stack([centre, centre])[None], 7, axis=0)
+    capsules[1:] += [5.0, 5.0, 5.0]  # far away
+    velocities = np.zeros((7, 2, 3))
+    velocities[0] = -rng.uniform(4.0, 8.0) * direction
+    for pipeline in (p, *others):
+        pipeline.barrier.set_external(capsules, np.full(7, radius), np.ones(7, bool), velocities)
+    low = p.filter.rows_at(q).min_h(self_rows=False)
+    return low is not None and low > 0.0
+
+
+def test_a_person_rushing_in_faster_than_any_retreat_stops_the_robot_on_random_states() -> None:
+    """The protective stop when person rows give way (``on_intrusion: stop_on_give_way``): a person capsule outside
+    every margin but rushing at the left forearm faster than it could retreat, on random states with
+    the robot moving and the imitation pulling anywhere: the rows are infeasible, and instead of the
+    retreat they cannot give the step is a protective stop aiming at rest (u_ref = 0), the hard rows
+    hold, no person row is approached faster than braking within the acceleration bound (its floor
+    min(b_i, 0): no retreat demanded), the output is finite, the rows that gave way are reported and
+    the robot is at rest within 0.5 s. With the default ``stop`` (nobody is inside a margin) the
+    same states retreat from the rushing capsule (A_i u > 0 on its rows) and are no stop."""
+    stop, retreat = pipeline_for(on_intrusion="stop_on_give_way"), pipeline_for()
+    rng = np.random.default_rng(29)
+    kin = stop.kinematics
+    stopped = retreated = 0
+    for _ in range(40):
+        q = random_safe_state(stop, rng)
+        if not person_rushing_in(stop, rng, q, retreat):
+            continue
+        q_nom = rng.uniform(kin.q_min, kin.q_max)
+        u_prev = 0.5 * rng.uniform(-stop.filter.params.u_max, stop.filter.params.u_max)
+        A, b, soft = stacked(stop, q)
+        retreat.filter.reset(q)
+        result = retreat.filter.step(q_nom, DT, np.zeros_like(q_nom))
+        if result.protective_stop:  # the capsule also reaches a thigh within the look-ahead: the other stop
+            continue
+        rushing = soft & (b > 1e-6)
+        retreated += bool((A[rushing] @ result.u > 1e-6).any())
+        stop.filter.reset(q)
+        stop.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
+        first = stop.filter.step(q_nom, DT, np.zeros_like(q_nom))
+        assert first.mode is SafetyMode.RELAXED and first.relaxed.any(), "the rushing person's rows must give way"
+        assert any("human.torso" in name for name in first.gave_way)
+        assert_stops_without_retreat(stop, q, q_nom, u_prev)
+        stopped += 1
+    assert stopped >= 15 and retreated >= stopped // 2
 
 
 def _slide_into_the_torso(margin: float) -> tuple[float, set[str]]:

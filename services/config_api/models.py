@@ -174,6 +174,7 @@ class SafetyPatch(_Patch):
     geometry: GeometryName = Field(None, description="collision geometry of the CBF rows: capsule | spheres | box (paper Table I)")
     on_intrusion: IntrusionResponse = Field(
         None, description="while a person is inside a robot capsule's margin: stop (protective stop, no retreat) | retreat"
+        " | stop_on_give_way (also stop whenever a person moves in faster than the robot can retreat: it never dodges)"
     )
     sphere_k: Annotated[_like(SafetyConfig, "sphere_k"), BeforeValidator(_whole_number)] = Field(
         None, description="spheres: levels of subsampling k"

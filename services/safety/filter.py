@@ -51,14 +51,26 @@ robot than the hair at q_cbf:
    c_i = 1 for a soft row and ``relax_penalty`` for a hard row that is already violated;
 2. best tracking among the least-violating: min ½‖u − u_ref‖²_W (+ ½ε‖σ‖²) with σ_i ≤ σ_i* of
    stage 1 (plus a solver tolerance): stage 1's solution is feasible here, so its total
-   violation cannot grow. **Protective stop while a person intrudes**: when a soft (robot–person)
-   row gives way in stage 1 (σ_i* > 0: the person moves into the robot faster than it can
-   retreat), stage 2 aims at ū, the box's point nearest rest, instead of u_ref: the robot retreats
-   as far as stage 1 requires and otherwise brakes to rest within the acceleration bound; it does
-   not go on imitating. This is ISO/TS 15066 speed and separation monitoring: once the
-   separation falls below the protective separation distance the robot initiates a protective
-   stop instead of continuing its task (here keeping the retreat stage 1 requires). The
-   imitation target is then typically
+   violation cannot grow. **Protective stop while a person row gives way**: when a soft
+   (robot–person) row gives way in stage 1 (σ_i* > 0: the person moves into the robot faster than
+   it can retreat), stage 2 aims at ū, the box's point nearest rest, instead of u_ref: the robot
+   does not go on imitating; it retreats as far as stage 1 requires. This is ISO/TS 15066 speed
+   and separation monitoring: once the separation cannot be kept, the robot initiates a
+   protective stop instead of continuing its task (here keeping the retreat stage 1 requires).
+   With ``on_intrusion = "stop_on_give_way"`` (opt-in) it does not retreat either: both stages
+   are solved again with every robot–person row at its floor, b_i ← min(b_i, 0), aiming at ū, so
+   the robot brakes to rest within the acceleration bound and closes on no perceived capsule (the
+   stops below; the slacks reported are the first solve's, the person rows that could not be
+   honoured). A retreat the rows cannot fully give is a fast motion along normals of capsules
+   seen a camera latency ago, and it moves the robot's other surfaces with it: on a person
+   stepping sideways across the robot while punching (a test variant of a development clip) the
+   waist, retreating the torso from one perceived forearm at up to 1.6 rad/s, swung the hand
+   into the true upper arm at 0.3 m/s while the perceived one was 130 mm away. Measured (README
+   "The intrusion stop"): robot-caused contact steps on the development set 12 → 0, the distance
+   the robot closed into the true person over 48 recordings and variants 63 → 6.6 mm; but a robot
+   that never dodges is walked and swung into (+60 % contact steps), and in the paper's
+   side-by-side arm raise the person's arm sweeping past meets the still robot (702 contact steps
+   instead of 0), so it is not the default. The imitation target is then typically
    radians away (the person blocks it), so u_ref = q̇_nom + K (q_nom − q_cbf) asks for the velocity
    bounds (15–20 rad/s on the sword clip facing the robot), and the freedom the rows leave
    (directions tangential to the perceived capsules, the other arm) was spent sweeping the robot's
@@ -82,15 +94,15 @@ steps came while the person stood inside the pelvis or legs. Only soft rows chan
 downward, so the feasibility argument below holds as it is (u = 0 satisfies a row
 A_i u ≥ min(b_i, 0)).
 
-**Protective stop while a person is inside a margin** (``on_intrusion = "stop"``, the default):
-the same stop — every robot–person row keeps only its floor, b_i ← min(b_i, 0), the target is
-rest — whenever some enabled robot–person row of the pair barrier has h_i < −``VIOLATION_TOL``: a
-person capsule is inside a robot capsule's margin (φ plus the person margin), which the rows
-never let the robot do, so the person moved in, faster than the robot could leave or while the
-camera still showed them elsewhere. Retreating from them (``"retreat"``: the violated rows
-demand A_i u ≥ −γ h_i > 0, the least total violation first) moves the robot along normals of
-capsules seen a camera latency ago, at up to γ|h| (0.9 m/s at h = −90 mm): on the test variants
-of the development clips (a full turn in place, a step of 1 m toward the robot) that swung hands
+**Protective stop while a person is inside a margin** (``on_intrusion`` "stop", the default, or
+"stop_on_give_way"): the same stop — every robot–person row keeps only its floor,
+b_i ← min(b_i, 0), the target is rest — whenever some enabled robot–person row of the pair
+barrier has h_i < −``VIOLATION_TOL``: a person capsule is inside a robot capsule's margin (φ plus
+the person margin), which the rows never let the robot do, so the person moved in, faster than
+the robot could leave or while the camera still showed them elsewhere. Retreating from them
+(``"retreat"``: the violated rows demand A_i u ≥ −γ h_i > 0, the least total violation first)
+moves the robot along normals of capsules seen a camera latency ago, at up to γ|h| (0.9 m/s at
+h = −90 mm): on the test variants of the development clips (a full turn in place, a step of 1 m toward the robot) that swung hands
 into true thighs at 1 m/s and leaned the torso into a true forearm while the perceived pairs
 opened. The stop ends as soon as no person row is inside (h ≥ −1 mm) and imitation resumes under
 the ordinary rows. Like the stop above it only lowers soft rows' b, so the feasibility argument
@@ -122,6 +134,7 @@ evaluator's no-CBF run).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -141,8 +154,10 @@ from services.safety.qp.box import (
 from shared.config import IntrusionResponse
 from shared.messages import SafetyMode
 
-#: ``FilterParams.on_intrusion`` of the intrusion stop (module docstring)
-_STOP = IntrusionResponse.STOP.value
+#: the ``FilterParams.on_intrusion`` values with the intrusion stop, and the one that also stops when person
+#: rows give way (module docstring)
+_STOPS = (IntrusionResponse.STOP.value, IntrusionResponse.STOP_ON_GIVE_WAY.value)
+_STOP_ON_GIVE_WAY = IntrusionResponse.STOP_ON_GIVE_WAY.value
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
 VIOLATION_TOL = 1e-3
 #: strict-convexity regularisation of the relaxed stages (weight of ‖σ‖², and of ‖u − u_ref‖² in stage 1)
@@ -197,7 +212,7 @@ class FilterParams:
     human_lookahead_s: float = 0.0  # T of the human velocity term (s; see barrier.py)
     accel_max: np.ndarray | None = None  # |u − u_prev|/Δt bound (n,) rad/s²; None: none
     self_margin: float = 0.0  # m the hard distance rows aim beyond φ (module docstring)
-    on_intrusion: str = "stop"  # "stop" | "retreat" while a person is inside a margin (module docstring)
+    on_intrusion: str = "stop"  # "stop" | "retreat" | "stop_on_give_way" (module docstring)
 
     def __post_init__(self) -> None:
         """Scalars as float, arrays as contiguous float64 (the compiled step's bound argument types)."""
@@ -237,8 +252,9 @@ class StepResult:
     ``ddq`` (n,) rad/s² the command's acceleration (u* − u_prev)/Δt (zero after a reset);
     ``protective_stop``: a person row of a capsule no joint moves asked for a positive rate (the
     person inside its margin or reaching it within the look-ahead), or with ``on_intrusion``
-    "stop" a person capsule is inside any robot capsule's margin, so the step aimed at rest and
-    no person row asked for more than holding its distance (module docstring)."""
+    "stop" a person capsule is inside any robot capsule's margin (with "stop_on_give_way" also: a
+    person row gave way), so the step aimed at rest (``u_ref`` 0) and no person row asked for more
+    than holding its distance (module docstring)."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -399,7 +415,7 @@ class SafetyFilter:
         shift = self._shift
         if shifted and rows.b.base is not b_all:
             rows.b += shift[: rows.b.shape[0]]
-        stop = self.enforce and (self._fixed_body_row_fails(b_all) or (p.on_intrusion == _STOP and self._intruded(rows)))
+        stop = self.enforce and (self._fixed_body_row_fails(b_all) or (p.on_intrusion in _STOPS and self._intruded(rows)))
         if stop:  # the protective stop (module docstring): rest is the target, person rows keep their floor
             q_nom, dq_nom = q, self._rest
             np.minimum(b_all, 0.0, out=b_all, where=soft_all)
@@ -432,9 +448,11 @@ class SafetyFilter:
             if self.enforce and inside < -VIOLATION_TOL:
                 mode = SafetyMode.RELAXED
         else:
-            u, mode, active, relaxed, gave_way, seconds, lower, upper, honours = self._relaxed_step(
+            u, mode, active, relaxed, gave_way, seconds, lower, upper, honours, gave_stop = self._relaxed_step(
                 problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0])
             qp_time += seconds
+            if gave_stop:  # the protective stop when person rows give way (module docstring): it tracked rest
+                stop, u_ref = True, np.zeros(n)
         if not honours:
             gave_way += (ACCEL_BOUND,)
         # u within [lower, upper] (an iterative solver's tolerance never exceeds u_max), q + Δt u within
@@ -477,22 +495,24 @@ class SafetyFilter:
         """The step when the plain QP has no solution: the relaxed solve (:meth:`_relax`) in every box
         of :meth:`_boxes` in turn until one works. Returns (u, mode, active rows, the pair rows that
         gave way (``n_pair``,), the names of every row that gave way, QP seconds, the box used (lower,
-        upper), whether it honours the acceleration bound); u None and mode HOLD when no box works.
+        upper), whether it honours the acceleration bound, whether it was the protective stop of
+        :meth:`_relax`); u None and mode HOLD when no box works.
         ``soft`` and ``kept`` (their indices among all the stacked rows) of ``problem``'s rows."""
         A, b = problem.A, problem.b
         margin = self._shift[kept]  # each row's b shift
         seconds = 0.0
         for lower, upper, honours in self._boxes(q, dt):  # the acceleration bound, widened, then none
             problem = QPProblem(w=problem.w, u_ref=problem.u_ref, A=A, b=b, lower=lower, upper=upper)
-            u, slack, spent = self._relax(problem, soft, margin)
+            u, slack, spent, stopped = self._relax(problem, soft, margin)
             seconds += spent
             if u is not None:
                 gave = np.zeros(len(self.row_names), bool)
                 gave[kept] = slack > RELAXED_TOL + margin  # within the self margin is no giving way
                 names = tuple(dict.fromkeys(self.row_names[i] for i in np.flatnonzero(gave)))
                 active = int(np.count_nonzero(A @ u - b <= 1e-6))
-                return u, SafetyMode.RELAXED, active, gave[:n_pair], names, seconds, lower, upper, honours
-        return np.zeros(problem.n), SafetyMode.HOLD, 0, np.zeros(n_pair, bool), (), seconds, lower, upper, honours
+                return u, SafetyMode.RELAXED, active, gave[:n_pair], names, seconds, lower, upper, honours, stopped
+        return (np.zeros(problem.n), SafetyMode.HOLD, 0, np.zeros(n_pair, bool), (), seconds, lower, upper, honours,
+                False)
 
     def compile_boxes(self, dt: float) -> None:
         """Compute every velocity box the step may try (:meth:`_boxes`) once, so that numba compiles
@@ -532,15 +552,38 @@ class SafetyFilter:
         yield lower, upper, False
 
     def _relax(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray) -> tuple[np.ndarray | None, np.ndarray,
-                                                                                        float]:
-        """The lexicographic relaxed solve (module docstring): (u or None, slacks (m,), seconds).
+                                                                                        float, bool]:
+        """The relaxed solve (module docstring): (u or None, slacks (m,), seconds, whether it is the
+        protective stop).
+
+        :meth:`_lexicographic` on ``problem``; when a soft (robot–person) row gives way there and
+        ``on_intrusion`` is "stop_on_give_way", the protective stop: the same solve again with every
+        soft row at its floor, b_i ← min(b_i, 0) (never closer, no retreat demanded), aiming at ū,
+        the box's point nearest rest. The slacks are the first solve's: the person rows that could not be honoured
+        as asked (reported as given way). Only soft rows' b is lowered, so the feasibility argument
+        holds unchanged; if the stop's solve fails numerically the first solve's u is used.
+        """
+        u, slack, seconds, gave = self._lexicographic(problem, soft, margin)
+        if u is None or not gave or self.params.on_intrusion != _STOP_ON_GIVE_WAY:
+            return u, slack, seconds, False
+        floored = problem.b.copy()
+        np.minimum(floored, 0.0, out=floored, where=soft)
+        rest = np.clip(0.0, problem.lower, problem.upper)  # ū
+        stop_u, _, spent, _ = self._lexicographic(dataclasses.replace(problem, b=floored, u_ref=rest), soft, margin,
+                                                  rest=True)
+        return (u if stop_u is None else stop_u), slack, seconds + spent, stop_u is not None
+
+    def _lexicographic(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray,
+                       rest: bool = False) -> tuple[np.ndarray | None, np.ndarray, float, bool]:
+        """The lexicographic relaxed solve (module docstring): (u or None, slacks (m,), seconds,
+        whether a soft row gave way (:func:`intrudes`)).
 
         With b⁰ = b − ``margin`` (m,) (the row's own bound without the self margin), row i may fall to
         its floor f_i = min(b⁰_i, 0) (a soft row or a violated one, b⁰_i > 0: min(b⁰_i, 0, A_i ū), ū
         the box's point nearest rest): σ_i ∈ [0, b_i − f_i]. Only rows with b_i > f_i get a slack
         variable: a hard row that holds even with its margin (b_i ≤ 0) has none, one inside its
         margin only the margin's. Stage 2 tracks ``problem.u_ref``, or ū when a soft row gave way
-        in stage 1 (:func:`intrudes`: the protective stop).
+        in stage 1 (:func:`intrudes`), or with ``rest``.
         """
         n, m = problem.n, problem.m
         own = problem.b - margin
@@ -564,11 +607,12 @@ class SafetyFilter:
         first = self._relaxed_qp.solve(least)
         slack = np.zeros(m)
         if first.u is None:
-            return None, slack, first.solve_time_s
+            return None, slack, first.solve_time_s, False
         sigma = np.clip(first.u[n:], 0.0, cap)
         # stage 2: min ½‖u − target‖²_W + ½ε‖σ‖²  with σ ≤ σ* (stage 1's solution is feasible here);
         # target = u_ref, or ū while a person row gives way (the protective stop, module docstring)
-        target = brake if intrudes(sigma, soft[loose]) else problem.u_ref
+        gave = intrudes(sigma, soft[loose])
+        target = brake if gave or rest else problem.u_ref
         tracking = QPProblem(w=np.concatenate([problem.w, np.full(k, _EPS)]),
                              u_ref=np.concatenate([target, np.zeros(k)]), A=A, b=problem.b,
                              lower=lower, upper=np.concatenate([problem.upper, np.minimum(sigma + _SLACK_TOL, cap)]))
@@ -576,4 +620,4 @@ class SafetyFilter:
         seconds = first.solve_time_s + second.solve_time_s
         best = second if second.u is not None else first
         slack[loose] = np.clip(best.u[n:], 0.0, cap)
-        return best.u[:n], slack, seconds
+        return best.u[:n], slack, seconds, gave
