@@ -35,6 +35,8 @@ import numpy as np
 
 #: Keypoints a variant needs: the pelvis (turn axis) and the shoulders (facing direction).
 NEEDED = ("pelvis", "left_shoulder", "right_shoulder")
+#: The size factors of the scaled variants (``--scales``): a 15 % shorter and a 15 % taller person.
+SCALES = (0.85, 1.15)
 
 
 def facing(xyz: np.ndarray, names: list[str]) -> np.ndarray:
@@ -47,10 +49,16 @@ def facing(xyz: np.ndarray, names: list[str]) -> np.ndarray:
     return forward / norm
 
 
-def turned(xyz: np.ndarray, names: list[str], turns: float = 1.0) -> np.ndarray:
-    """``xyz`` (T, K, 3) rotated about the vertical through frame 0's pelvis by 2π · turns · k / (T − 1) at frame k."""
+def floor_below_pelvis(xyz: np.ndarray, names: list[str]) -> np.ndarray:
+    """(3,) the floor point (z = 0) below frame 0's pelvis of ``xyz`` (T, K, 3)."""
     centre = xyz[0, names.index("pelvis")].copy()
     centre[2] = 0.0
+    return centre
+
+
+def turned(xyz: np.ndarray, names: list[str], turns: float = 1.0) -> np.ndarray:
+    """``xyz`` (T, K, 3) rotated about the vertical through frame 0's pelvis by 2π · turns · k / (T − 1) at frame k."""
+    centre = floor_below_pelvis(xyz, names)
     angle = 2.0 * np.pi * turns * np.linspace(0.0, 1.0, len(xyz))
     c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
     rel = xyz - centre
@@ -77,8 +85,7 @@ def scaled(xyz: np.ndarray, names: list[str], factor: float) -> np.ndarray:
     """``xyz`` (T, K, 3) scaled by ``factor`` about the floor point (z = 0) below frame 0's pelvis."""
     if not factor > 0.0:
         raise ValueError(f"a scale must be > 0, got {factor}")
-    centre = xyz[0, names.index("pelvis")].copy()
-    centre[2] = 0.0
+    centre = floor_below_pelvis(xyz, names)
     return centre + factor * (xyz - centre)
 
 
@@ -102,7 +109,7 @@ def read_recording(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
 
 
 def variants(xyz: np.ndarray, names: list[str], turns: float = 1.0, step_m: float = 1.0, side_m: float = 0.5,
-             scales: tuple[float, ...] = (0.85, 1.15)) -> dict[str, np.ndarray]:
+             scales: tuple[float, ...] = SCALES) -> dict[str, np.ndarray]:
     """Every variant of ``xyz`` (T, K, 3) by its file name suffix (module docstring)."""
     out = {"turn": turned(xyz, names, turns), "stepin": stepped_in(xyz, names, step_m),
            "sidestep": side_stepped(xyz, names, side_m)}
@@ -112,7 +119,7 @@ def variants(xyz: np.ndarray, names: list[str], turns: float = 1.0, step_m: floa
 
 
 def write_variants(source: Path, out: Path, turns: float = 1.0, step_m: float = 1.0, side_m: float = 0.5,
-                   scales: tuple[float, ...] = (0.85, 1.15)) -> list[Path]:
+                   scales: tuple[float, ...] = SCALES) -> list[Path]:
     """The variants of recording ``source`` written into ``out``; their paths."""
     fields, names = read_recording(source)
     written = []
@@ -144,8 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--step-m", type=float, default=1.0, help="distance walked forward over the clip, m (default 1)")
     parser.add_argument("--side-m", type=float, default=0.5,
                         help="distance stepped towards the person's right over the clip, m (default 0.5)")
-    parser.add_argument("--scales", type=_scales, default=(0.85, 1.15),
-                        help="comma-separated size factors of the scaled variants (default 0.85,1.15; '' for none)")
+    parser.add_argument("--scales", type=_scales, default=SCALES,
+                        help="comma-separated size factors of the scaled variants (default "
+                        f"{','.join(map(str, SCALES))}; '' for none)")
     args = parser.parse_args(argv)
     sources = sorted(args.source.glob("*.npz")) if args.source.is_dir() else [args.source]
     if not sources:
