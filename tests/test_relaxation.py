@@ -3,9 +3,9 @@ retreat, the self rows and joint barriers hold, every person row keeps at least 
 (the robot never closes in), the total violation is the least possible, and the problem is feasible
 by construction (u = 0, σ = max(b, 0)); the relaxation's own tests run with
 ``safety.on_intrusion: retreat``, where a person inside a margin is retreated from. With the default
-``stop`` that person stops the robot instead, never closer, no retreat; with ``stop_on_give_way`` so does one
-moving in faster than the robot can retreat. Random states on the real
-robot model, real Pinocchio, DAQP and OSQP; the least violation is checked against SciPy's LP solver."""
+``stop`` that person stops the robot instead, never closer, no retreat; with ``stop_on_give_way``
+so does one moving in faster than the robot can retreat. Random states on the real robot model,
+real Pinocchio, DAQP and OSQP; the least violation is checked against SciPy's LP solver."""
 
 from __future__ import annotations
 
@@ -285,13 +285,13 @@ def person_rushing_in(p, rng: np.random.Generator, q: np.ndarray, *others) -> bo
 
 
 def test_a_person_rushing_in_faster_than_any_retreat_stops_the_robot_on_random_states() -> None:
-    """The protective stop when person rows give way (``on_intrusion: stop_on_give_way``): a person capsule outside
-    every margin but rushing at the left forearm faster than it could retreat, on random states with
-    the robot moving and the imitation pulling anywhere: the rows are infeasible, and instead of the
-    retreat they cannot give the step is a protective stop aiming at rest (u_ref = 0), the hard rows
-    hold, no person row is approached faster than braking within the acceleration bound (its floor
-    min(b_i, 0): no retreat demanded), the output is finite, the rows that gave way are reported and
-    the robot is at rest within 0.5 s. With the default ``stop`` (nobody is inside a margin) the
+    """The protective stop when person rows give way (``on_intrusion: stop_on_give_way``): a person
+    capsule outside every margin but rushing at the left forearm faster than it could retreat, on
+    random states with the robot moving and the imitation pulling anywhere: the rows are
+    infeasible, and instead of the retreat they cannot give the step is a protective stop aiming at
+    rest (u_ref = 0), the hard rows hold, no person row is approached faster than braking within the
+    acceleration bound (its floor min(b_i, 0): no retreat demanded), the output is finite, the rows
+    that gave way are reported and the robot is at rest within 0.5 s. With the default ``stop`` (nobody is inside a margin) the
     same states retreat from the rushing capsule (A_i u > 0 on its rows) and are no stop."""
     stop, retreat = pipeline_for(on_intrusion="stop_on_give_way"), pipeline_for()
     rng = np.random.default_rng(29)

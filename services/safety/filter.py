@@ -559,18 +559,17 @@ class SafetyFilter:
         :meth:`_lexicographic` on ``problem``; when a soft (robot–person) row gives way there and
         ``on_intrusion`` is "stop_on_give_way", the protective stop: the same solve again with every
         soft row at its floor, b_i ← min(b_i, 0) (never closer, no retreat demanded), aiming at ū,
-        the box's point nearest rest. The slacks are the first solve's: the person rows that could not be honoured
-        as asked (reported as given way). Only soft rows' b is lowered, so the feasibility argument
-        holds unchanged; if the stop's solve fails numerically the first solve's u is used.
+        the box's point nearest rest. The slacks are the first solve's: the person rows that could
+        not be honoured as asked (reported as given way). Only soft rows' b is lowered, so the
+        feasibility argument holds unchanged; if the stop's solve fails numerically the first
+        solve's u is used.
         """
         u, slack, seconds, gave = self._lexicographic(problem, soft, margin)
         if u is None or not gave or self.params.on_intrusion != _STOP_ON_GIVE_WAY:
             return u, slack, seconds, False
         floored = problem.b.copy()
         np.minimum(floored, 0.0, out=floored, where=soft)
-        rest = np.clip(0.0, problem.lower, problem.upper)  # ū
-        stop_u, _, spent, _ = self._lexicographic(dataclasses.replace(problem, b=floored, u_ref=rest), soft, margin,
-                                                  rest=True)
+        stop_u, _, spent, _ = self._lexicographic(dataclasses.replace(problem, b=floored), soft, margin, rest=True)
         return (u if stop_u is None else stop_u), slack, seconds + spent, stop_u is not None
 
     def _lexicographic(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray,
@@ -583,12 +582,13 @@ class SafetyFilter:
         the box's point nearest rest): σ_i ∈ [0, b_i − f_i]. Only rows with b_i > f_i get a slack
         variable: a hard row that holds even with its margin (b_i ≤ 0) has none, one inside its
         margin only the margin's. Stage 2 tracks ``problem.u_ref``, or ū when a soft row gave way
-        in stage 1 (:func:`intrudes`), or with ``rest``.
+        in stage 1 (:func:`intrudes`); with ``rest`` both stages aim at ū instead of u_ref.
         """
         n, m = problem.n, problem.m
         own = problem.b - margin
         floor = np.minimum(own, 0.0)
         brake = np.clip(0.0, problem.lower, problem.upper)  # the box's point nearest rest: 0 in a velocity box
+        reference = brake if rest else problem.u_ref
         give = soft | (own > 0.0)
         floor[give] = np.minimum(floor[give], problem.A[give] @ brake)
         slack_cap = problem.b - floor
@@ -602,7 +602,7 @@ class SafetyFilter:
         lower = np.concatenate([problem.lower, np.zeros(k)])
         # stage 1: min Σ c σ + ½ε‖u − u_ref‖²_W + ½ε‖σ‖²  (the linear term as ½ε‖σ + c/ε‖²)
         least = QPProblem(w=np.concatenate([_EPS * problem.w, np.full(k, _EPS)]),
-                          u_ref=np.concatenate([problem.u_ref, -cost / _EPS]), A=A, b=problem.b,
+                          u_ref=np.concatenate([reference, -cost / _EPS]), A=A, b=problem.b,
                           lower=lower, upper=np.concatenate([problem.upper, cap]))
         first = self._relaxed_qp.solve(least)
         slack = np.zeros(m)
@@ -612,7 +612,7 @@ class SafetyFilter:
         # stage 2: min ½‖u − target‖²_W + ½ε‖σ‖²  with σ ≤ σ* (stage 1's solution is feasible here);
         # target = u_ref, or ū while a person row gives way (the protective stop, module docstring)
         gave = intrudes(sigma, soft[loose])
-        target = brake if gave or rest else problem.u_ref
+        target = brake if gave else reference
         tracking = QPProblem(w=np.concatenate([problem.w, np.full(k, _EPS)]),
                              u_ref=np.concatenate([target, np.zeros(k)]), A=A, b=problem.b,
                              lower=lower, upper=np.concatenate([problem.upper, np.minimum(sigma + _SLACK_TOL, cap)]))
