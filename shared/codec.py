@@ -69,11 +69,18 @@ def _array_header(dtype: np.dtype, shape: tuple[int, ...]) -> tuple[bytes, np.dt
     return _HEADER.pack(code, len(shape)) + _DIMS[len(shape)].pack(*shape), _DTYPES[code]
 
 
+def _array_bytes(array: np.ndarray) -> bytes:
+    """ND_EXT payload of an array: wire header + raw little-endian C-order bytes."""
+    header, wire_dtype = _array_header(array.dtype, array.shape)
+    if array.dtype is not wire_dtype:  # big-endian (or an equal dtype object: no copy then)
+        array = np.ascontiguousarray(array, dtype=wire_dtype)
+    return header + array.tobytes()  # tobytes() is C order whatever the strides
+
+
 def _default(obj: Any) -> Any:
     """msgpack hook: ndarray → ExtType(ND_EXT, header + raw little-endian C-order bytes)."""
     if isinstance(obj, np.ndarray):
-        header, wire_dtype = _array_header(obj.dtype, obj.shape)
-        return msgpack.ExtType(ND_EXT, header + np.ascontiguousarray(obj, dtype=wire_dtype).tobytes())
+        return msgpack.ExtType(ND_EXT, _array_bytes(obj))
     if isinstance(obj, np.generic):
         return obj.item()
     raise TypeError(f"cannot encode {type(obj).__name__}")
@@ -102,7 +109,7 @@ def _ext_hook(code: int, data: bytes) -> Any:
     dtype, shape, nbytes = _parse_header(data[:offset])
     if len(data) - offset != nbytes:
         raise MalformedPayload("array byte count does not match dtype and shape")
-    return np.frombuffer(data, dtype=dtype, offset=offset).reshape(shape)
+    return np.ndarray(shape, dtype, data, offset)  # (shape, dtype, buffer, offset): keywords cost ~2× here
 
 
 @functools.cache
@@ -112,12 +119,25 @@ def _wire_fields(cls: type[Message]) -> tuple[str, ...]:
 
 
 def encode(message: Message) -> bytes:
-    """Encode a validated message to msgpack bytes (fields as attributes, arrays as ND_EXT)."""
-    payload: dict[str, Any] = {"schema": {"name": message.SCHEMA_NAME, "version": message.SCHEMA_VERSION}}
-    for name in _wire_fields(type(message)):
+    """Encode a validated message to msgpack bytes (fields as attributes, arrays as ND_EXT).
+
+    Written entry by entry with one packer: the bytes ``msgpack.packb`` gives for the field dict
+    with :func:`_default`, without building the dict or an ``ExtType`` per array.
+    """
+    fields = _wire_fields(type(message))
+    packer = msgpack.Packer(default=_default, use_bin_type=True, autoreset=False)
+    pack = packer.pack
+    packer.pack_map_header(len(fields) + 1)
+    pack("schema")
+    pack({"name": message.SCHEMA_NAME, "version": message.SCHEMA_VERSION})
+    for name in fields:
+        pack(name)
         value = getattr(message, name)
-        payload[name] = value.value if isinstance(value, Enum) else value
-    data = msgpack.packb(payload, default=_default, use_bin_type=True)
+        if type(value) is np.ndarray:
+            packer.pack_ext_type(ND_EXT, _array_bytes(value))
+        else:
+            pack(value.value if isinstance(value, Enum) else value)
+    data = packer.bytes()
     if len(data) > MAX_MESSAGE_BYTES:
         raise MessageTooLarge(f"{type(message).__name__} encodes to {len(data)} B > {MAX_MESSAGE_BYTES} B")
     return data

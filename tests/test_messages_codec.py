@@ -396,6 +396,21 @@ def test_arrays_travel_as_raw_binary() -> None:
     assert as_lists.count(b"\xcb") >= n_floats  # the list encoding is full of float markers
 
 
+def test_arrays_of_any_layout_encode_as_little_endian_c_order() -> None:
+    """encode writes what msgpack.packb of the field dict writes, whatever the arrays' byte order and strides."""
+    reference = make(HumanState)
+    message = make(HumanState)
+    message.keypoints = message.keypoints.astype(">f8")  # validate_assignment is off: encode gets them as they are
+    message.capsules = np.asfortranarray(message.capsules)
+    message.theta = np.repeat(message.theta, 2)[::2]
+    data = encode(message)
+    fields = {name: getattr(message, name) for name in HumanState.model_fields if name != "schema_"}
+    assert data == pack({"schema": {"name": "HumanState", "version": HumanState.SCHEMA_VERSION}} | fields)
+    for name in ("keypoints", "capsules", "theta"):
+        assert getattr(reference, name).astype("<f8").tobytes() in data, name
+    assert_messages_equal(decode(data), reference)
+
+
 def test_decoded_arrays_do_not_share_state_with_the_sender() -> None:
     message = make(JointState)
     decoded = decode(encode(message))
@@ -432,6 +447,25 @@ def test_nan_and_inf_rejected_everywhere(cls: type[Message], field: str, bad: fl
     # NaN as float32 array on the wire (another whitelisted dtype) too
     if isinstance(value, np.ndarray):
         payload[field] = patched.astype(np.float32)
+        with pytest.raises(InvalidMessage):
+            decode(pack(payload))
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+@pytest.mark.parametrize(("cls", "field"), [(JointState, "q"), (HumanState, "keypoints"), (HumanState, "capsules")])
+def test_finite_arrays_whose_sum_overflows_are_accepted(cls: type[Message], field: str, sign: float) -> None:
+    """The finite check's cheap sum overflows here: its element-wise fallback accepts, and still refuses NaN/Inf."""
+    huge = np.full(ARRAY_FIELDS[cls][field][0], sign * np.finfo(np.float64).max)
+    message = make(cls, **{field: huge})
+    decoded = decode(encode(message))
+    assert getattr(decoded, field).tobytes() == huge.tobytes()
+    for bad in BAD_FLOATS:
+        patched = huge.copy()
+        patched.flat[-1] = bad
+        with pytest.raises(ValidationError):
+            make(cls, **{field: patched})
+        payload = unpack(encode(message))
+        payload[field] = patched
         with pytest.raises(InvalidMessage):
             decode(pack(payload))
 
