@@ -250,6 +250,12 @@ class SafetyConfig(_Section):
         "inference, transport) + one 30 Hz frame of hold 0.033 + the point filter's lag ≤ 0.016 (EMA τ = 0.03 s "
         "at 30 Hz; One Euro ≈ 0.009) ≈ 0.11",
     )
+    human_predict_s: float = Field(
+        default=0.0, ge=0, le=0.5,
+        description="every fresh person capsule enters the rows where its measured velocity carries it in this time "
+        "(s): the capsule's endpoints + v·τ, the person's position now rather than when the camera saw them "
+        "(camera latency + the frame held); 0: as measured; stale or lost capsules are never moved",
+    )
     on_intrusion: IntrusionResponse = Field(
         default=IntrusionResponse.STOP,
         description="while a person capsule is inside a robot capsule's margin (h < −1 mm on a person row): stop "

@@ -159,7 +159,7 @@ def run_episode(
     ep = _empty_episode(enforce, len(person.t), safety, truth, sim.model.nq, sim.home_contacts, dt)
     n_rows = len(safety.pairs)
     row_pair = safety.barrier.row_pair  # a geometry may monitor a pair with several rows (spheres)
-    use_velocity = conf.safety.human_velocity_term
+    use_velocity, predict_s = conf.safety.human_velocity_term, conf.safety.human_predict_s
     timeout, hold = conf.safety.human_timeout_s, conf.safety.lost_human_hold_s
     memory = HumanMemory()
     nominal = NominalTrack(safety.filter.q_cbf.copy())  # no human yet: hold
@@ -175,7 +175,9 @@ def run_episode(
             now_stale = t - human.t[newest] > timeout
             if newest != applied or now_stale != stale:
                 memory.update(state, human.t[newest], hold)
-                safety.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity and not now_stale))
+                external = memory.capsules(safety.pairs.n_external, use_velocity and not now_stale,
+                                           0.0 if now_stale else predict_s)
+                safety.barrier.set_external(*external)
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     r = safety.retargeter
                     nominal.update(*r.track(state), state.stamp, human.t[newest], horizon, r.q_min, r.q_max)

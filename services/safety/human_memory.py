@@ -6,7 +6,9 @@ absence of the person, so per capsule slot :class:`HumanMemory` keeps the last v
 (endpoints, radius) and when it was last valid, and applies this rule at each fresh HumanState
 received at time ``now``:
 
-- a slot valid in the message is used as it is (with its measured velocity when asked for);
+- a slot valid in the message is used as it is (with its measured velocity when asked for), or
+  carried forward by that velocity for ``safety.human_predict_s`` (where the person is by now: the
+  message shows them a camera latency and a held frame ago);
 - a slot the message marks invalid that was valid within ``hold_s`` (``safety.lost_human_hold_s``)
   is *lost*: its remembered capsule stays in the barrier, without a velocity term (the person may
   still be there), and while any slot is lost the robot stops imitating (q_nom = q_cbf);
@@ -94,7 +96,13 @@ class HumanMemory:
         if message.capsule_velocities is not None:
             self._velocities = np.where(seen[:, None, None], message.capsule_velocities, 0.0)
 
-    def capsules(self, n_external: int, use_velocity: bool) -> ExternalCapsules:
+    def capsules(self, n_external: int, use_velocity: bool, predict_s: float = 0.0) -> ExternalCapsules:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
-        ``use_velocity``: with the measured velocities of the currently valid slots."""
-        return padded(n_external, self._endpoints, self._radii, self._valid, self._velocities if use_velocity else None)
+        ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s`` τ (s):
+        each slot valid in the newest message at p + v·τ (its endpoints p, m, carried by their measured
+        velocities v, m/s), a lost slot where it was last seen (its v is 0); τ = 0 or no velocities: as
+        measured."""
+        endpoints = self._endpoints
+        if predict_s > 0.0 and self._velocities is not None:
+            endpoints = endpoints + predict_s * self._velocities
+        return padded(n_external, endpoints, self._radii, self._valid, self._velocities if use_velocity else None)

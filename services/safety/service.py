@@ -100,6 +100,7 @@ _MAX_CONSECUTIVE_ERRORS = 100
 #: the pipeline, so no setting is ever silently ignored.
 _HOT_SAFETY_FIELDS = frozenset(f.name for f in dataclasses.fields(FilterParams)) | {
     "rate_hz", "status_rate_hz", "human_timeout_s", "human_velocity_term", "lost_human_hold_s",
+    "human_predict_s",
     "feedforward", "extrapolate_max_s",
 }
 
@@ -360,7 +361,8 @@ class SafetyService(ScheduledService):
         safety = self.conf.safety
         self._memory.update(message, received.received, safety.lost_human_hold_s)
         use_velocity = safety.human_velocity_term and not stale
-        self.pipeline.barrier.set_external(*self._memory.capsules(self.pipeline.pairs.n_external, use_velocity))
+        predict_s = 0.0 if stale else safety.human_predict_s
+        self.pipeline.barrier.set_external(*self._memory.capsules(self.pipeline.pairs.n_external, use_velocity, predict_s))
         if not stale:  # stale: the tick stops imitating (q_nom = q_cbf)
             retargeter = self.pipeline.retargeter
             self._q_nom, dq_nom = retargeter.track(message)
