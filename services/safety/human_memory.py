@@ -7,8 +7,8 @@ absence of the person, so per capsule slot :class:`HumanMemory` keeps the last v
 received at time ``now``:
 
 - a slot valid in the message is used as it is (with its measured velocity when asked for), or
-  carried forward by that velocity for ``safety.human_predict_s`` (where the person is by now: the
-  message shows them a camera latency and a held frame ago);
+  swept along that velocity for ``safety.human_predict_s`` (the message shows the person a camera
+  latency and a held frame ago: :meth:`HumanMemory.capsules`);
 - a slot the message marks invalid that was valid within ``hold_s`` (``safety.lost_human_hold_s``)
   is *lost*: its remembered capsule stays in the barrier, without a velocity term (the person may
   still be there), and while any slot is lost the robot stops imitating (q_nom = q_cbf);
@@ -98,11 +98,19 @@ class HumanMemory:
 
     def capsules(self, n_external: int, use_velocity: bool, predict_s: float = 0.0) -> ExternalCapsules:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
-        ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s`` τ (s):
-        each slot valid in the newest message at p + v·τ (its endpoints p, m, carried by their measured
-        velocities v, m/s), a lost slot where it was last seen (its v is 0); τ = 0 or no velocities: as
-        measured."""
-        endpoints = self._endpoints
+        ``use_velocity``: with the measured velocities of the currently valid slots.
+
+        ``predict_s`` τ > 0 (s): each slot valid in the newest message is replaced by one capsule
+        enclosing it both where it was seen and where its measured velocity carries it in τ. With
+        endpoints a, b (m), radius r and endpoint displacements d_a = v_a τ, d_b = v_b τ, that is the
+        capsule [a + d_a/2, b + d_b/2] of radius r + max(|d_a|, |d_b|)/2: the point at parameter s of
+        either segment, a + s(b − a) (+ (1 − s) d_a + s d_b when predicted), lies within
+        |(1 − s) d_a + s d_b|/2 ≤ max(|d_a|, |d_b|)/2 of the new axis at the same s. So the person's
+        measured capsule is always inside (a noisy velocity can only make the rows more cautious,
+        never let the robot closer to where the person was seen). A lost slot (v = 0) is unchanged."""
+        endpoints, radii = self._endpoints, self._radii
         if predict_s > 0.0 and self._velocities is not None:
-            endpoints = endpoints + predict_s * self._velocities
-        return padded(n_external, endpoints, self._radii, self._valid, self._velocities if use_velocity else None)
+            half = (0.5 * predict_s) * self._velocities
+            endpoints = endpoints + half
+            radii = radii + np.linalg.norm(half, axis=2).max(axis=1)
+        return padded(n_external, endpoints, radii, self._valid, self._velocities if use_velocity else None)
