@@ -6,6 +6,7 @@ import numpy as np
 
 from services.safety.human_memory import HumanMemory, external_capsules
 from shared.messages import HumanState
+from shared.geometry import segment_closest_points
 from shared.names import CAPSULE_NAMES
 
 HOLD_S = 2.0
@@ -82,3 +83,37 @@ def test_slots_never_seen_valid_do_not_block() -> None:
         memory.update(state(1.0, all_but(*LEGS)), float(t), HOLD_S)
         assert not memory.lost
     assert not memory.capsules(7, False).valid[LEGS].any()
+
+
+def test_the_swept_capsule_encloses_the_seen_and_the_predicted_capsule_on_random_states() -> None:
+    """human_predict_s: every point of the measured capsule and of the one its velocities carry τ
+    ahead lies inside the capsule the rows get; a lost slot is not moved; τ = 0 changes nothing."""
+    rng = np.random.default_rng(3)
+    n = len(CAPSULE_NAMES)
+    for trial in range(50):
+        valid = rng.random(n) < 0.8
+        message = HumanState(
+            stamp=0.0, keypoints=np.zeros((15, 3)), keypoint_valid=np.ones(15, bool), theta=np.zeros(8),
+            theta_valid=np.ones(8, bool), capsules=rng.uniform(-1, 1, (n, 2, 3)), capsule_radii=rng.uniform(0.04, 0.2, n),
+            capsule_valid=valid, capsule_velocities=rng.normal(0.0, 2.0, (n, 2, 3)),
+        )
+        memory = HumanMemory()
+        memory.update(state(0.0, np.ones(n, bool)), 0.0, HOLD_S)
+        memory.update(message, 0.1, HOLD_S)  # slots invalid now are lost: held at x = 0
+        tau = float(rng.uniform(0.01, 0.3))
+        swept = memory.capsules(n, True, tau)
+        seen = memory.capsules(n, True)
+        for a, b in zip(memory.capsules(n, True, 0.0), seen, strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(swept.velocities, seen.velocities)
+        np.testing.assert_allclose(swept.radii, seen.radii + swept.sweep)  # the widening, reported per slot
+        assert seen.sweep is None and (swept.sweep[~valid] == 0).all() and (swept.sweep[valid] > 0).all()
+        np.testing.assert_array_equal(swept.endpoints[~valid], seen.endpoints[~valid])
+        np.testing.assert_array_equal(swept.radii[~valid], seen.radii[~valid])
+        for i in np.flatnonzero(valid):
+            ends = message.capsules[i]
+            for start in (ends, ends + tau * message.capsule_velocities[i]):
+                for s in np.linspace(0.0, 1.0, 11):
+                    point = start[0] + s * (start[1] - start[0])
+                    gap = segment_closest_points(swept.endpoints[i, 0], swept.endpoints[i, 1], point, point).distance[0]
+                    assert gap + message.capsule_radii[i] <= swept.radii[i] + 1e-12, (trial, i, s)

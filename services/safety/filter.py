@@ -478,9 +478,14 @@ class SafetyFilter:
     def _intruded(rows: BarrierRows) -> bool:
         """Whether a person capsule is inside a robot capsule's margin: some enabled robot–person
         row of the pair barrier's ``rows`` has h < −:data:`VIOLATION_TOL` (the intrusion stop, module
-        docstring)."""
+        docstring). A row against a capsule swept ahead (``safety.human_predict_s``) counts only when
+        the capsule as measured is inside for certain, h + 2·sweep < −tol (:attr:`BarrierRows.sweep`):
+        a person expected to come closer is kept out by the rows, not met by a stop."""
         if not rows.min_h_all < -VIOLATION_TOL:  # the smallest h of all enabled rows: none is inside
             return False
+        if rows.sweep is not None and rows.sweep.any():
+            inside = rows.enabled & ~rows.is_self & (rows.h + 2.0 * rows.sweep < -VIOLATION_TOL)
+            return bool(inside.any())
         low = rows.min_h(self_rows=False)
         return low is not None and low < -VIOLATION_TOL
 

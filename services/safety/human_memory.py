@@ -34,26 +34,32 @@ from shared.names import CAPSULE_NAMES
 
 class ExternalCapsules(NamedTuple):
     """The barrier's external capsule arrays, as ``set_external`` takes them (E external slots):
-    endpoints (E,2,3) m, radii (E,) m, valid (E,) bool, velocities (E,2,3) m/s or None."""
+    endpoints (E,2,3) m, radii (E,) m, valid (E,) bool, velocities (E,2,3) m/s or None, sweep (E,) m
+    how much each radius grew to enclose the capsule swept ahead (None: none swept)."""
 
     endpoints: np.ndarray
     radii: np.ndarray
     valid: np.ndarray
     velocities: np.ndarray | None
+    sweep: np.ndarray | None = None
 
 
 def padded(
-    n_external: int, endpoints: np.ndarray, radii: np.ndarray, valid: np.ndarray, velocities: np.ndarray | None
+    n_external: int, endpoints: np.ndarray, radii: np.ndarray, valid: np.ndarray, velocities: np.ndarray | None,
+    sweep: np.ndarray | None = None,
 ) -> ExternalCapsules:
     """One person's capsules in the pair set's ``n_external`` slots (7 per person; the ``paper72``
     preset has a second person): this person fills the first 7, the other slots stay invalid
     (disabled rows)."""
     n = min(n_external, endpoints.shape[0])
     out = ExternalCapsules(np.zeros((n_external, 2, 3)), np.zeros(n_external), np.zeros(n_external, bool),
-                           None if velocities is None else np.zeros((n_external, 2, 3)))
+                           None if velocities is None else np.zeros((n_external, 2, 3)),
+                           None if sweep is None else np.zeros(n_external))
     out.endpoints[:n], out.radii[:n], out.valid[:n] = endpoints[:n], radii[:n], valid[:n]
     if out.velocities is not None:
         out.velocities[:n] = velocities[:n]
+    if out.sweep is not None:
+        out.sweep[:n] = sweep[:n]
     return out
 
 
@@ -107,10 +113,11 @@ class HumanMemory:
         either segment, a + s(b − a) (+ (1 − s) d_a + s d_b when predicted), lies within
         |(1 − s) d_a + s d_b|/2 ≤ max(|d_a|, |d_b|)/2 of the new axis at the same s. So the person's
         measured capsule is always inside (a noisy velocity can only make the rows more cautious,
-        never let the robot closer to where the person was seen). A lost slot (v = 0) is unchanged."""
-        endpoints, radii = self._endpoints, self._radii
+        never let the robot closer to where the person was seen), and ``sweep`` holds
+        max(|d_a|, |d_b|)/2 per slot. A lost slot (v = 0) is unchanged."""
+        velocities = self._velocities if use_velocity else None
         if predict_s > 0.0 and self._velocities is not None:
             half = (0.5 * predict_s) * self._velocities
-            endpoints = endpoints + half
-            radii = radii + np.linalg.norm(half, axis=2).max(axis=1)
-        return padded(n_external, endpoints, radii, self._valid, self._velocities if use_velocity else None)
+            sweep = np.linalg.norm(half, axis=2).max(axis=1)
+            return padded(n_external, self._endpoints + half, self._radii + sweep, self._valid, velocities, sweep)
+        return padded(n_external, self._endpoints, self._radii, self._valid, velocities)

@@ -63,7 +63,7 @@ class CapsuleBarrier(CollisionGeometry):
         low, low_self = self._writer.write(endpoints, jacobians, gamma, phi, lookahead, start, A, b, soft, h, distance)
         stop = start + distance.shape[0]
         self.last_rows = BarrierRows(A[start:stop], b[start:stop], self._row_soft, h[start:stop], distance,
-                                     self._row_enabled, self._row_is_self, low)
+                                     self._row_enabled, self._row_is_self, low, self._row_sweep)
         return low, low_self
 
     def witness_points(self) -> np.ndarray:

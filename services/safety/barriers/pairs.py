@@ -49,6 +49,10 @@ class BarrierRows(RowBlock):
     enabled: np.ndarray
     is_self: np.ndarray
     min_h_all: float = float("inf")  # min h over enabled rows (inf: none)
+    #: (m,) m per row: how much its person capsule was widened by the sweep ahead (``set_external``'s
+    #: ``sweep``; 0 for self rows and measured capsules): the capsule as measured lies within this of
+    #: the swept one's axis, so its own h is at most h + 2·sweep
+    sweep: np.ndarray | None = None
 
     def min_h(self, self_rows: bool) -> float | None:
         """Minimum h over enabled self (or robot–human) rows; None if there is none."""
@@ -170,6 +174,7 @@ class CollisionGeometry(Barrier):
         self._motion = np.zeros((2, n_stack, 2, 3))
         self._endpoints, self._velocities = self._motion[0], self._motion[1]
         self._radii = np.zeros(n_stack)
+        self._sweep = np.zeros(n_stack)  # per capsule: the widening of a swept external one (m)
         self._valid = np.ones(n_stack, bool)
         self._radii[:N_ROBOT] = self.robot_radii
         #: added to every external capsule's radius at :meth:`set_external` (m; ``safety.human_margin``,
@@ -194,6 +199,7 @@ class CollisionGeometry(Barrier):
         self._row_soft = ~self._row_is_self
         self._row_all_enabled = np.ones(len(self._row_capsule), bool)
         self._row_enabled = self._row_all_enabled
+        self._row_sweep = self._sweep[self._row_capsule]
         #: (3, m) per row: enabled (updated in place by :meth:`set_external`), self-collision row, soft
         #: (the flags of :class:`SegmentRowWriter`)
         self._flags = np.stack([self._row_enabled, self._row_is_self, self._row_soft])
@@ -215,9 +221,12 @@ class CollisionGeometry(Barrier):
         radii: np.ndarray | None = None,
         valid: np.ndarray | None = None,
         velocities: np.ndarray | None = None,
+        sweep: np.ndarray | None = None,
     ) -> None:
         """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s; each radius plus
-        :attr:`person_margin`); None: none present."""
+        :attr:`person_margin`); None: none present. ``sweep`` (E,) m: how much each was widened to
+        enclose where its velocity carries it (:meth:`HumanMemory.capsules`; None: 0), reported per
+        row as :attr:`BarrierRows.sweep`."""
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
@@ -226,6 +235,8 @@ class CollisionGeometry(Barrier):
             self._radii[ext] = np.add(radii, self.person_margin)
             self._valid[ext] = True if valid is None else valid
             self._velocities[ext] = 0.0 if velocities is None else velocities
+            self._sweep[ext] = 0.0 if sweep is None else sweep
+            self._row_sweep = self._sweep[self._row_capsule]
             self._external_changed()
         self._all_enabled = bool(self._valid.all())
         self._row_enabled = self._row_all_enabled if self._all_enabled else self._valid[self._row_capsule]
@@ -261,7 +272,7 @@ class CollisionGeometry(Barrier):
             enabled = self._row_all_enabled
             min_h_all = min_h if min_h is not None else float(h.min()) if len(h) else float("inf")
         self.last_rows = BarrierRows(A=A, b=b, soft=self._row_soft, h=h, distance=distance, enabled=enabled,
-                                     is_self=self._row_is_self, min_h_all=min_h_all)
+                                     is_self=self._row_is_self, min_h_all=min_h_all, sweep=self._row_sweep)
         return self.last_rows
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
