@@ -18,6 +18,7 @@ from scipy.optimize import linprog
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.filter import RELAXED_TOL, movable_rows
+from services.safety.human_memory import padded
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
 from tests.support.pipelines import DT, alone_at, pipeline_for
@@ -610,3 +611,59 @@ def test_the_self_margin_shifts_the_reported_and_the_solved_rows_once(geometry: 
     kept = shifted.filter._kept[: solved.shape[0]]  # noqa: SLF001
     pair = kept < with_margin.rows.b.shape[0]
     np.testing.assert_array_equal(solved[pair], with_margin.rows.b[kept[pair]])
+
+
+def test_a_swept_person_stops_the_robot_only_once_the_measured_capsule_is_inside_on_random_states() -> None:
+    """``safety.human_predict_s``: one person capsule outside every margin, 1–6 cm from the left
+    forearm's, approaching it across its axis at 1–3 m/s and swept 0.093 s ahead as
+    :meth:`HumanMemory.capsules` sweeps it, so that the swept capsule is inside the margin and the
+    measured one is not. On random states with the imitation pulling anywhere: no protective stop
+    (the rows keep the person out), where the same rows without the sweep reported would stop the
+    robot; once the measured capsule is itself 3–6 cm inside (approaching at 0.5–1.5 m/s, so that the
+    sweep does not carry it across the forearm's axis, where h + 2·sweep is no longer h as measured
+    but only a bound above it), the swept one stops the robot too."""
+    p = pipeline_for()
+    rng = np.random.default_rng(31)
+    kin = p.kinematics
+    kept_out = 0
+
+    def step(capsules, velocities, radius, sweep_reported, q, q_nom):
+        half = 0.5 * 0.093 * velocities
+        sweep = np.linalg.norm(half, axis=2).max(axis=1)
+        p.barrier.set_external(*padded(7, capsules + half, np.full(7, radius) + sweep, np.ones(7, bool), velocities,
+                                       sweep if sweep_reported else None))
+        fixed = p.filter._fixed_body_row_fails(np.concatenate([blk.b for blk in p.filter.blocks_at(q)]))  # noqa: SLF001
+        p.filter.reset(q)
+        return fixed, p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop
+
+    for _ in range(60):
+        q = random_safe_state(p, rng)
+        endpoints, _ = kin.compute(q)
+        a, b = endpoints[FOREARM]
+        direction = rng.normal(size=3)
+        direction -= (direction @ (b - a)) / ((b - a) @ (b - a)) * (b - a)  # across the forearm's axis
+        direction /= np.linalg.norm(direction)
+        radius = 0.06
+        reach = p.barrier.robot_radii[FOREARM] + p.filter.params.phi + radius + p.barrier.person_margin
+        velocities = np.zeros((7, 2, 3))
+        velocities[0] = -rng.uniform(1.0, 3.0) * direction
+        q_nom = rng.uniform(kin.q_min, kin.q_max)
+
+        def person(gap: float) -> np.ndarray:
+            centre = 0.5 * (a + b) + (reach + gap) * direction
+            capsules = np.repeat(np.stack([centre, centre])[None], 7, axis=0)
+            capsules[1:] += [5.0, 5.0, 5.0]  # far away
+            return capsules
+
+        outside = person(rng.uniform(0.01, 0.06))
+        p.barrier.set_external(outside, np.full(7, radius), np.ones(7, bool), velocities)
+        low = p.filter.rows_at(q).min_h(self_rows=False)
+        fixed, stop = step(outside, velocities, radius, True, q, q_nom)
+        if fixed or low is None or low < 0.0:  # near another robot capsule too, or reaching a thigh (no joint moves it)
+            continue
+        assert not stop, "a capsule only expected inside must be kept out by the rows, not stop the robot"
+        assert step(outside, velocities, radius, False, q, q_nom)[1], "read as inside without the sweep: a stop"
+        slower = 0.5 * velocities  # swept less far than the forearm's axis: the bound is then exact
+        assert step(person(-rng.uniform(0.03, 0.06)), slower, radius, True, q, q_nom)[1], "measured inside: a stop"
+        kept_out += 1
+    assert kept_out >= 15
