@@ -251,14 +251,13 @@ class SafetyConfig(_Section):
         "at 30 Hz; One Euro ≈ 0.009) ≈ 0.11",
     )
     human_predict_s: float = Field(
-        default=0.0, ge=0, le=0.5,
-        description="opt-in: every fresh person capsule is replaced in the rows by the capsule that encloses it both "
-        "where it was seen and where its measured velocity carries it in this time τ (s; e.g. 0.093, camera latency "
-        "+ one frame held): axis moved by v·τ/2, radius + max|v|·τ/2, so a noisy velocity only makes the rows more "
-        "cautious; 0: as measured. Measured (README 'Sweeping the person ahead'): the robot closes less distance "
-        "into people and a noisy camera commands far fewer robot-caused contacts, but the intrusion stop triggers "
-        "on the swept capsule, so a person's arm sweeping past meets a robot that stands still (the paper's "
-        "side-by-side arm raise: 349 contact steps instead of 0)",
+        default=0.093, ge=0, le=0.5,
+        description="every fresh person capsule is replaced in the rows by the capsule that encloses it both where it "
+        "was seen and where its measured velocity carries it in this time τ (s): camera latency 0.060 + one 30 Hz "
+        "frame held 0.033, how old the measured position is when the robot acts on it (the point filter's lag is "
+        "in human_lookahead_s). Axis moved by v·τ/2, radius + max|v|·τ/2, so a noisy velocity only makes the rows "
+        "more cautious; the intrusion stop still needs the measured capsule inside. 0: as measured (the paper). "
+        "README 'Sweeping the person ahead'",
     )
     on_intrusion: IntrusionResponse = Field(
         default=IntrusionResponse.STOP,

@@ -204,24 +204,22 @@ def test_suite_over_the_development_clips_writes_one_row_per_clip_and_placement(
     assert "broken" in done.stderr and f"{2 * len(clips)} run folders" in done.stdout
 
 
-def test_the_swept_person_only_tightens_the_rows_against_the_person() -> None:
-    """``safety.human_predict_s``: both runs (with the CBF) are the same until the first human state
-    with a measured velocity is applied; at that step (same robot state) every robot–person
-    barrier against the swept capsules is at most the one against the measured capsules, and the
-    moving arm makes some of them smaller; the self rows do not change."""
+def test_the_swept_person_changes_the_rows_and_h_is_reported_against_the_measured_person() -> None:
+    """``safety.human_predict_s`` (0.093 s, the default) against 0: both runs (with the CBF) are the same
+    until the first human state with a measured velocity is applied; at that step (same robot
+    state) the reported h, against the perceived person as measured, is the same in both, and after
+    it the swept rows move the robot differently. The paper's raise stays safe either way."""
     conf = evaluation_config(None, "side-by-side-arm-raise", "side-by-side", None)
     evaluations = []
     for predict_s in (0.0, 0.093):
         swept = conf.model_copy(update={"safety": conf.safety.model_copy(update={"human_predict_s": predict_s})})
-        evaluations.append(evaluate(swept, seconds=3.0))
+        evaluations.append(evaluate(swept, seconds=4.0))
     measured, swept = (e.cbf for e in evaluations)
     first = next(i for i, state in enumerate(evaluations[0].human.states) if state.capsule_velocities.any())
     moving = np.flatnonzero(measured.human == first)[0]  # the first state with a measured velocity
     np.testing.assert_array_equal(measured.q_sim[:moving], swept.q_sim[:moving])
-    person = ~measured.pairs.is_self
-    before, after = measured.h[moving], swept.h[moving]
-    seen = np.isfinite(before)
-    assert person.any() and (seen == np.isfinite(after)).all()
-    assert (after[seen & person] <= before[seen & person] + 1e-12).all()
-    assert (after[seen & person] < before[seen & person] - 1e-4).any()
-    np.testing.assert_array_equal(after[seen & ~person], before[seen & ~person])
+    np.testing.assert_allclose(swept.h[moving], measured.h[moving], atol=1e-12)
+    assert np.abs(swept.q_sim[moving:] - measured.q_sim[moving:]).max() > 1e-3
+    for e in evaluations:
+        cbf = e.metrics()["cbf"]
+        assert cbf["min_h_human"] >= -1e-3 and cbf["true_contacts_robot_human"] == 0, cbf

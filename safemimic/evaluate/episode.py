@@ -32,7 +32,7 @@ from services.executor.contacts import ContactReport, ContactTally
 from services.executor.mujoco.contacts import body_contacts
 from services.executor.mujoco.executor import MujocoExecutor
 from services.executor.mujoco.model import PDGains
-from services.safety.assembly import SafetyPipeline, build_pipeline
+from services.safety.assembly import SafetyPipeline, build_pipeline, make_geometry
 from services.safety.human_memory import HumanMemory
 from services.safety.nominal import NominalTrack
 from services.safety.kinematics import RobotKinematics
@@ -52,7 +52,8 @@ class Episode:
 
     The filter's own view: ``q_nom``/``q_cbf``/``u`` (N, 8) rad, rad/s (retargeted target,
     commanded safe target and velocity); ``h`` (N, m) m, every monitored pair's barrier at the
-    step's start against the perceived person (NaN: capsule missing); ``active`` (N, m) pair rows
+    step's start against the perceived person as measured (NaN: capsule missing; with
+    ``safety.human_predict_s`` the rows hold that person swept ahead, whose h is at most this); ``active`` (N, m) pair rows
     binding in the QP; ``binding`` (N,) some QP row binds (a pair or a joint barrier); ``mode``
     (N,) index into :data:`MODES`; ``qp_ms`` (N,) solve time (wall clock); ``human`` (N,) index
     of the perceived state in force (−1: none yet); ``pairs`` names the columns of ``h``.
@@ -138,6 +139,22 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
     )
 
 
+class MeasuredBarrier:
+    """The pipeline's pair barrier again (same geometry, pairs, radii and person margin) on its own
+    kinematics, holding the perceived person as measured: h at the filter's state, where the
+    filter's rows hold the person swept ahead (``safety.human_predict_s``)."""
+
+    def __init__(self, conf: StackConfig, safety: SafetyPipeline) -> None:
+        self._kinematics = RobotKinematics(safety.kinematics.spec)
+        self.barrier = make_geometry(conf, safety.pairs, self._kinematics)
+        self._params = safety.filter.params
+
+    def h(self, q: np.ndarray) -> np.ndarray:
+        """(m,) every row's h (m) at joint angles ``q`` (NaN: capsule missing)."""
+        endpoints, jacobians = self._kinematics.compute(q)
+        return self.barrier.evaluate(endpoints, jacobians, self._params.gamma, self._params.phi).h.copy()
+
+
 def run_episode(
     conf: StackConfig,
     human: HumanTrack,
@@ -160,6 +177,9 @@ def run_episode(
     n_rows = len(safety.pairs)
     row_pair = safety.barrier.row_pair  # a geometry may monitor a pair with several rows (spheres)
     use_velocity, predict_s = conf.safety.human_velocity_term, conf.safety.human_predict_s
+    # the person swept ahead (human_predict_s) is the rows' hypothesis: h is reported against the
+    # perceived person as measured, by a second barrier of the same geometry on its own kinematics
+    seen = None if predict_s <= 0.0 else MeasuredBarrier(conf, safety)
     timeout, hold = conf.safety.human_timeout_s, conf.safety.lost_human_hold_s
     memory = HumanMemory()
     nominal = NominalTrack(safety.filter.q_cbf.copy())  # no human yet: hold
@@ -178,6 +198,8 @@ def run_episode(
                 external = memory.capsules(safety.pairs.n_external, use_velocity and not now_stale,
                                            0.0 if now_stale else predict_s)
                 safety.barrier.set_external(*external)
+                if seen is not None:
+                    seen.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity and not now_stale))
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     r = safety.retargeter
                     nominal.update(*r.track(state), state.stamp, human.t[newest], horizon, r.q_min, r.q_max)
@@ -185,6 +207,7 @@ def run_episode(
                     sim.set_human(state.capsules, state.capsule_radii, state.capsule_valid, PERCEIVED_PERSON)
                 applied, stale = newest, now_stale
         q_nom, dq_nom = nominal.at(t)
+        h_seen = None if seen is None else seen.h(safety.filter.q_cbf)
         if stale or memory.lost:
             result = safety.filter.step(safety.filter.q_cbf.copy(), dt)
         else:
@@ -213,7 +236,7 @@ def run_episode(
 
         rows = result.rows
         ep.q_nom[k], ep.q_cbf[k], ep.u[k] = q_nom, result.q_cbf, result.u
-        ep.h[k] = per_pair(rows.h, row_pair, n_rows, np.fmin)
+        ep.h[k] = per_pair(rows.h if h_seen is None else h_seen, row_pair, n_rows, np.fmin)
         if enforce and result.active_rows:
             ep.active[k] = per_pair(rows.enabled & (rows.A @ result.u - rows.b <= 1e-6), row_pair, n_rows, np.logical_or)
             ep.binding[k] = True

@@ -105,7 +105,11 @@ moves the robot along normals of capsules seen a camera latency ago, at up to γ
 h = −90 mm): on the test variants of the development clips (a full turn in place, a step of 1 m toward the robot) that swung hands
 into true thighs at 1 m/s and leaned the torso into a true forearm while the perceived pairs
 opened. The stop ends as soon as no person row is inside (h ≥ −1 mm) and imitation resumes under
-the ordinary rows. Like the stop above it only lowers soft rows' b, so the feasibility argument
+the ordinary rows. With the person swept ahead (``safety.human_predict_s``: each person capsule
+widened by ``sweep`` to enclose where its velocity carries it) a row counts as inside only when
+the capsule as measured is, for certain: its axis lies within ``sweep`` of the swept axis, so its
+h ≤ h_swept + 2·sweep, and the stop takes h_swept + 2·sweep < −1 mm. A person only expected to come
+in is kept out by the (swept) rows, not met by a robot standing still. Like the stop above it only lowers soft rows' b, so the feasibility argument
 below is unchanged. Measured (README "The intrusion stop"): the distance the robot closed into
 the true person 2.4–5× smaller in contact and 1.7–3.5× within φ, at 11–30 % more contact steps,
 which are the person's.
