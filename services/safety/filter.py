@@ -249,8 +249,9 @@ class StepResult:
     """Outcome of one step: the new q_cbf (n,), u* (n,), mode, the pair barrier's rows and solver
     facts; ``relaxed`` (m,) the pair rows that gave way (their slack > 0; all False unless RELAXED,
     then a shared read-only array);
-    ``intrusion``: a person capsule is inside the margin (h < 0 on a soft pair row) while the
-    robot retreats from or holds against it (A_i u* ≥ 0); ``gave_way`` the names of every row of
+    ``intrusion``: a person capsule, as measured, is inside the margin (h < 0 on a soft pair row;
+    h + 2·sweep < 0 where the person is swept ahead) while the robot retreats from or holds against
+    it (A_i u* ≥ 0); ``gave_way`` the names of every row of
     any barrier that gave way (:meth:`Barrier.row_names`, each once); ``min_h_self`` (m) the
     smallest h over the self-collision distance rows of every barrier (pair and static; None: none);
     ``ddq`` (n,) rad/s² the command's acceleration (u* − u_prev)/Δt (zero after a reset);
@@ -473,7 +474,7 @@ class SafetyFilter:
         self._u_prev = u
         intrusion = False
         if self.enforce and rows.min_h_all < 0.0:  # min over enabled rows: no row inside its margin, no intrusion
-            person = rows.soft & rows.enabled & (rows.h < 0.0)  # a disabled row's h is NaN: never < 0
+            person = rows.person_inside(0.0)
             intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
         return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
                           stop, gave_way, None if low_self == math.inf else low_self, ddq)
@@ -487,11 +488,7 @@ class SafetyFilter:
         a person expected to come closer is kept out by the rows, not met by a stop."""
         if not rows.min_h_all < -VIOLATION_TOL:  # the smallest h of all enabled rows: none is inside
             return False
-        if rows.sweep is not None and rows.sweep.any():
-            inside = rows.enabled & ~rows.is_self & (rows.h + 2.0 * rows.sweep < -VIOLATION_TOL)
-            return bool(inside.any())
-        low = rows.min_h(self_rows=False)
-        return low is not None and low < -VIOLATION_TOL
+        return bool(rows.person_inside(-VIOLATION_TOL).any())
 
     def _fixed_body_row_fails(self, b: np.ndarray) -> bool:
         """Whether a robot–person row of a capsule no joint moves asks for a positive rate (``b`` (M,)

@@ -54,6 +54,12 @@ class BarrierRows(RowBlock):
     #: the swept one's axis, so its own h is at most h + 2·sweep
     sweep: np.ndarray | None = None
 
+    def person_inside(self, below: float) -> np.ndarray:
+        """(m,) bool: the enabled robot–person rows whose person capsule *as measured* is inside for
+        certain, h + 2·sweep < ``below`` (m; h alone where nothing is swept)."""
+        h = self.h if self.sweep is None or not self.sweep.any() else self.h + 2.0 * self.sweep
+        return self.soft & self.enabled & (h < below)  # a disabled row's h is NaN: never below
+
     def min_h(self, self_rows: bool) -> float | None:
         """Minimum h over enabled self (or robot–human) rows; None if there is none."""
         count, low = masked_min(self.h, self.enabled, self.is_self, self_rows)
