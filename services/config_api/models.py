@@ -84,6 +84,7 @@ SAFETY_FIELDS: dict[str, str] = {
     "accel_max": "safety.accel_max",
     "self_margin": "safety.self_margin",
     "human_margin": "safety.human_margin",
+    "human_predict_s": "safety.human_predict_s",
     "dt": "safety.rate_hz",  # dt = 1 / rate_hz
     "enabled_pair_groups": "safety.enabled_pair_groups",
     "capsule_radii.robot": "safety.capsule_radii",
@@ -106,7 +107,8 @@ RETARGET_FIELDS: dict[str, str] = {
     "method": "retargeting.method",
 }
 #: Safety request fields whose value goes into the configuration unchanged.
-_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_velocity_term",
+_DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_predict_s",
+                  "human_velocity_term",
                   "sphere_k"}
 #: Configuration field → request field, to name the request's field in errors found on the whole config.
 REQUEST_FIELD: dict[str, str] = {path: name for name, path in (SAFETY_FIELDS | RETARGET_FIELDS).items()}
@@ -164,6 +166,10 @@ class SafetyPatch(_Patch):
     )
     human_margin: _like(SafetyConfig, "human_margin") = Field(
         None, description="how much thicker every person capsule is in the CBF rows (m): the sensor's position uncertainty"
+    )
+    human_predict_s: _like(SafetyConfig, "human_predict_s") = Field(
+        None, description="every person capsule swept ahead along its measured velocity this far (s): the delay from camera to "
+        "command the position has; 0: as measured (the paper)"
     )
     dt: Annotated[float, Strict(), Field(ge=DT_MIN, le=DT_MAX)] = Field(None, description="control period Δt (s) = 1 / control rate")
     enabled_pair_groups: Annotated[list[PairGroup], AfterValidator(_distinct)] = Field(
@@ -250,6 +256,7 @@ class SafetyParams(_View):
     accel_max: list[float] | None
     self_margin: float
     human_margin: float
+    human_predict_s: float
     dt: float
     enabled_pair_groups: list[PairGroup]
     capsule_radii: CapsuleRadii
@@ -263,7 +270,7 @@ class SafetyParams(_View):
         s, h = conf.safety, conf.human
         return cls(
             gamma=s.gamma, phi=s.phi, k=s.gain, w=s.weights, u_min=s.u_min, u_max=s.u_max, accel_max=s.accel_max,
-            self_margin=s.self_margin, human_margin=s.human_margin, dt=1.0 / s.rate_hz,
+            self_margin=s.self_margin, human_margin=s.human_margin, human_predict_s=s.human_predict_s, dt=1.0 / s.rate_hz,
             enabled_pair_groups=s.enabled_pair_groups,
             capsule_radii=CapsuleRadii(
                 robot=s.capsule_radii,

@@ -37,8 +37,9 @@ async def get_config(context: Context) -> ConfigResponse:
 @router.patch("/safety", response_model=ChangeResponse, responses=WRITE_ERRORS)
 async def patch_safety(patch: SafetyPatch, actor: Writer, context: Context) -> ChangeResponse:
     """Change CBF-QP parameters: ``gamma`` γ, ``phi`` φ, ``k`` K, ``w`` (diagonal of W), ``u_min`` /
-    ``u_max``, ``dt``, ``enabled_pair_groups``, ``capsule_radii``, ``human_velocity_term``, ``geometry``
-    (capsule | spheres | box), ``sphere_k`` and ``on_intrusion`` (stop | retreat | stop_on_give_way).
+    ``u_max``, ``dt``, ``enabled_pair_groups``, ``capsule_radii``, ``human_velocity_term``,
+    ``human_predict_s`` (the person swept ahead, s; 0: as measured), ``geometry`` (capsule | spheres |
+    box), ``sphere_k`` and ``on_intrusion`` (stop | retreat | stop_on_give_way).
 
     The change is validated on the whole configuration (422 names the field; nothing is applied),
     persisted with the next version, published, and the answer waits until the safety service
