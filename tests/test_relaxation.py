@@ -18,7 +18,7 @@ from scipy.optimize import linprog
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.filter import RELAXED_TOL, movable_rows
-from services.safety.human_memory import padded
+from services.safety.human_memory import padded, swept_capsules
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
 from tests.support.pipelines import DT, alone_at, pipeline_for
@@ -615,8 +615,8 @@ def test_the_self_margin_shifts_the_reported_and_the_solved_rows_once(geometry: 
 
 def test_a_swept_person_stops_the_robot_only_once_the_measured_capsule_is_inside_on_random_states() -> None:
     """``safety.human_predict_s``: one person capsule outside every margin, 1–6 cm from the left
-    forearm's, approaching it across its axis at 1–3 m/s and swept 0.093 s ahead as
-    :meth:`HumanMemory.capsules` sweeps it, so that the swept capsule is inside the margin and the
+    forearm's, approaching it across its axis at 1–3 m/s and swept 0.093 s ahead
+    (:func:`swept_capsules`), so that the swept capsule is inside the margin and the
     measured one is not. On random states with the imitation pulling anywhere: no protective stop
     (the rows keep the person out), where the same rows without the sweep reported would stop the
     robot; once the measured capsule is itself 3–6 cm inside (approaching at 0.5–1.5 m/s, so that the
@@ -628,10 +628,8 @@ def test_a_swept_person_stops_the_robot_only_once_the_measured_capsule_is_inside
     kept_out = 0
 
     def step(capsules, velocities, radius, sweep_reported, q, q_nom):
-        half = 0.5 * 0.093 * velocities
-        sweep = np.linalg.norm(half, axis=2).max(axis=1)
-        p.barrier.set_external(*padded(7, capsules + half, np.full(7, radius) + sweep, np.ones(7, bool), velocities,
-                                       sweep if sweep_reported else None))
+        ends, radii, sweep = swept_capsules(capsules, np.full(7, radius), velocities, 0.093)
+        p.barrier.set_external(*padded(7, ends, radii, np.ones(7, bool), velocities, sweep if sweep_reported else None))
         fixed = p.filter._fixed_body_row_fails(np.concatenate([blk.b for blk in p.filter.blocks_at(q)]))  # noqa: SLF001
         p.filter.reset(q)
         return fixed, p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop

@@ -8,7 +8,7 @@ received at time ``now``:
 
 - a slot valid in the message is used as it is (with its measured velocity when asked for), or
   swept along that velocity for ``safety.human_predict_s`` (the message shows the person a camera
-  latency and a held frame ago: :meth:`HumanMemory.capsules`);
+  latency and a held frame ago: :func:`swept_capsules`);
 - a slot the message marks invalid that was valid within ``hold_s`` (``safety.lost_human_hold_s``)
   is *lost*: its remembered capsule stays in the barrier, without a velocity term (the person may
   still be there), and while any slot is lost the robot stops imitating (q_nom = q_cbf);
@@ -69,6 +69,25 @@ def external_capsules(message: HumanState, n_external: int, use_velocity: bool) 
     return padded(n_external, message.capsules, message.capsule_radii, message.capsule_valid, velocities)
 
 
+def swept_capsules(endpoints: np.ndarray, radii: np.ndarray, velocities: np.ndarray,
+                   predict_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The capsules enclosing each capsule both where it is and where its velocity carries it in
+    τ = ``predict_s`` (s): (endpoints (E,2,3) m, radii (E,) m, sweep (E,) m) from ``endpoints``
+    (E,2,3) m, ``radii`` (E,) m and endpoint ``velocities`` (E,2,3) m/s.
+
+    With endpoints a, b, radius r and displacements d_a = v_a τ, d_b = v_b τ, capsule i becomes
+    [a + d_a/2, b + d_b/2] with radius r + sweep, sweep = max(|d_a|, |d_b|)/2: the point at parameter
+    s of either segment, a + s(b − a) (+ (1 − s) d_a + s d_b when carried), lies within
+    |(1 − s) d_a + s d_b|/2 ≤ sweep of the new axis at the same s. So the capsule as measured is
+    always inside (a noisy velocity can only make the rows more cautious, never let the robot closer
+    to where the person was seen), its axis lies within ``sweep`` of the new one, and against any
+    robot capsule its h is at most the swept one's h + 2·sweep (what the intrusion stop uses). A
+    capsule with v = 0 is unchanged."""
+    half = (0.5 * predict_s) * velocities
+    sweep = np.linalg.norm(half, axis=2).max(axis=1)
+    return endpoints + half, radii + sweep, sweep
+
+
 class HumanMemory:
     """The last valid capsule of every slot and the rule of the module doc (:meth:`update`, :meth:`capsules`)."""
 
@@ -104,20 +123,11 @@ class HumanMemory:
 
     def capsules(self, n_external: int, use_velocity: bool, predict_s: float = 0.0) -> ExternalCapsules:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
-        ``use_velocity``: with the measured velocities of the currently valid slots.
-
-        ``predict_s`` τ > 0 (s): each slot valid in the newest message is replaced by one capsule
-        enclosing it both where it was seen and where its measured velocity carries it in τ. With
-        endpoints a, b (m), radius r and endpoint displacements d_a = v_a τ, d_b = v_b τ, that is the
-        capsule [a + d_a/2, b + d_b/2] of radius r + max(|d_a|, |d_b|)/2: the point at parameter s of
-        either segment, a + s(b − a) (+ (1 − s) d_a + s d_b when predicted), lies within
-        |(1 − s) d_a + s d_b|/2 ≤ max(|d_a|, |d_b|)/2 of the new axis at the same s. So the person's
-        measured capsule is always inside (a noisy velocity can only make the rows more cautious,
-        never let the robot closer to where the person was seen), and ``sweep`` holds
-        max(|d_a|, |d_b|)/2 per slot. A lost slot (v = 0) is unchanged."""
+        ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s``
+        τ > 0 (s): each slot valid in the newest message swept ahead by :func:`swept_capsules` (a lost
+        slot, whose velocity is 0, is unchanged)."""
         velocities = self._velocities if use_velocity else None
         if predict_s > 0.0 and self._velocities is not None:
-            half = (0.5 * predict_s) * self._velocities
-            sweep = np.linalg.norm(half, axis=2).max(axis=1)
-            return padded(n_external, self._endpoints + half, self._radii + sweep, self._valid, velocities, sweep)
+            endpoints, radii, sweep = swept_capsules(self._endpoints, self._radii, self._velocities, predict_s)
+            return padded(n_external, endpoints, radii, self._valid, velocities, sweep)
         return padded(n_external, self._endpoints, self._radii, self._valid, velocities)

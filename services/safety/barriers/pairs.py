@@ -231,8 +231,8 @@ class CollisionGeometry(Barrier):
     ) -> None:
         """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s; each radius plus
         :attr:`person_margin`); None: none present. ``sweep`` (E,) m: how much each was widened to
-        enclose where its velocity carries it (:meth:`HumanMemory.capsules`; None: 0), reported per
-        row as :attr:`BarrierRows.sweep`."""
+        enclose where its velocity carries it (:func:`~services.safety.human_memory.swept_capsules`;
+        None: 0), reported per row as :attr:`BarrierRows.sweep`."""
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
