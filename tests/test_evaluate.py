@@ -220,6 +220,8 @@ def test_the_swept_person_changes_the_rows_and_h_is_reported_against_the_measure
     np.testing.assert_array_equal(measured.q_sim[:moving], swept.q_sim[:moving])
     np.testing.assert_allclose(swept.h[moving], measured.h[moving], atol=1e-12)
     assert np.abs(swept.q_sim[moving:] - measured.q_sim[moving:]).max() > 1e-3
-    for e in evaluations:
-        cbf = e.metrics()["cbf"]
+    for e, predict_s in zip(evaluations, (0.0, 0.093), strict=True):
+        metrics = e.metrics()
+        cbf = metrics["cbf"]
         assert cbf["min_h_human"] >= -1e-3 and cbf["true_contacts_robot_human"] == 0, cbf
+        assert metrics["input"]["human_predict_s"] == predict_s  # which sweep the run had

@@ -201,6 +201,7 @@ def input_metrics(
         "phi": s.phi,
         "gain": s.gain,
         "human_velocity_term": s.human_velocity_term,
+        "human_predict_s": s.human_predict_s,
         **camera.settings(),
         "self_pairs": int(np.count_nonzero(cbf.pairs.is_self)),
         "human_pairs": int(np.count_nonzero(~cbf.pairs.is_self)),
