@@ -53,8 +53,8 @@ class Episode:
     The filter's own view: ``q_nom``/``q_cbf``/``u`` (N, 8) rad, rad/s (retargeted target,
     commanded safe target and velocity); ``h`` (N, m) m, every monitored pair's barrier at the
     step's start against the perceived person as measured (NaN: capsule missing; with
-    ``safety.human_predict_s`` the rows hold that person swept ahead, whose h is at most this); ``active`` (N, m) pair rows
-    binding in the QP; ``binding`` (N,) some QP row binds (a pair or a joint barrier); ``mode``
+    ``safety.human_predict_s`` the rows hold that person swept ahead, whose h is at most this);
+    ``active`` (N, m) pair rows binding in the QP; ``binding`` (N,) some QP row binds (a pair or a joint barrier); ``mode``
     (N,) index into :data:`MODES`; ``qp_ms`` (N,) solve time (wall clock); ``human`` (N,) index
     of the perceived state in force (−1: none yet); ``pairs`` names the columns of ``h``.
 
@@ -140,19 +140,21 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
 
 
 class MeasuredBarrier:
-    """The pipeline's pair barrier again (same geometry, pairs, radii and person margin) on its own
-    kinematics, holding the perceived person as measured: h at the filter's state, where the
-    filter's rows hold the person swept ahead (``safety.human_predict_s``)."""
+    """The pipeline's pair barrier again (same geometry, pairs, radii and person margin), holding the
+    perceived person as measured: h at the filter's state, where the filter's rows hold the person
+    swept ahead (``safety.human_predict_s``). It shares the pipeline's kinematics, as
+    :class:`~safemimic.evaluate.truth.TruthProbe` does: the filter computes its own forward
+    kinematics at the start of every step."""
 
     def __init__(self, conf: StackConfig, safety: SafetyPipeline) -> None:
-        self._kinematics = RobotKinematics(safety.kinematics.spec)
+        self._kinematics = safety.kinematics
         self.barrier = make_geometry(conf, safety.pairs, self._kinematics)
         self._params = safety.filter.params
 
     def h(self, q: np.ndarray) -> np.ndarray:
         """(m,) every row's h (m) at joint angles ``q`` (NaN: capsule missing)."""
         endpoints, jacobians = self._kinematics.compute(q)
-        return self.barrier.evaluate(endpoints, jacobians, self._params.gamma, self._params.phi).h.copy()
+        return self.barrier.evaluate(endpoints, jacobians, self._params.gamma, self._params.phi).h
 
 
 def run_episode(
@@ -178,7 +180,7 @@ def run_episode(
     row_pair = safety.barrier.row_pair  # a geometry may monitor a pair with several rows (spheres)
     use_velocity, predict_s = conf.safety.human_velocity_term, conf.safety.human_predict_s
     # the person swept ahead (human_predict_s) is the rows' hypothesis: h is reported against the
-    # perceived person as measured, by a second barrier of the same geometry on its own kinematics
+    # perceived person as measured, by a second barrier of the same geometry
     seen = None if predict_s <= 0.0 else MeasuredBarrier(conf, safety)
     timeout, hold = conf.safety.human_timeout_s, conf.safety.lost_human_hold_s
     memory = HumanMemory()
@@ -195,11 +197,11 @@ def run_episode(
             now_stale = t - human.t[newest] > timeout
             if newest != applied or now_stale != stale:
                 memory.update(state, human.t[newest], hold)
-                external = memory.capsules(safety.pairs.n_external, use_velocity and not now_stale,
-                                           0.0 if now_stale else predict_s)
+                velocity = use_velocity and not now_stale
+                external = memory.capsules(safety.pairs.n_external, velocity, 0.0 if now_stale else predict_s)
                 safety.barrier.set_external(*external)
                 if seen is not None:
-                    seen.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity and not now_stale))
+                    seen.barrier.set_external(*memory.capsules(safety.pairs.n_external, velocity))
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     r = safety.retargeter
                     nominal.update(*r.track(state), state.stamp, human.t[newest], horizon, r.q_min, r.q_max)

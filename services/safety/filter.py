@@ -110,9 +110,9 @@ widened by ``sweep`` to enclose where its velocity carries it) a row counts as i
 the capsule as measured is, for certain: its axis lies within ``sweep`` of the swept axis, so its
 h ≤ h_swept + 2·sweep, and the stop takes h_swept + 2·sweep < −1 mm. A person only expected to come
 in is kept out by the (swept) rows, not met by a robot standing still. Like the stop above it
-only lowers soft rows' b, so the feasibility argument below is unchanged. Measured (README "The intrusion stop"): the distance the robot closed into
-the true person 2.4–5× smaller in contact and 1.7–3.5× within φ, at 11–30 % more contact steps,
-which are the person's.
+only lowers soft rows' b, so the feasibility argument below is unchanged. Measured (README "The
+intrusion stop"): the distance the robot closed into the true person 2.4–5× smaller in contact and
+1.7–3.5× within φ, at 11–30 % more contact steps, which are the person's.
 
 *Feasible by construction.* u = 0, σ_i = max(b_i, 0) satisfies every constraint of both stages
 whenever 0 lies in the box, which holds in the last box tried (the velocity box alone, the
