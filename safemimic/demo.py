@@ -336,7 +336,7 @@ def _watchdog_column(status: SafetyStatus) -> str:
     flags = {"human stale": status.human_stale, "perception lost": status.human_source_lost,
              "person lost (held)": status.human_lost,
              "joint state stale": status.joint_state_stale, "executor holding": status.executor_holding,
-             "resyncing": status.resyncing, "person intrusion (retreating)": status.person_intrusion}
+             "resyncing": status.resyncing, "person intrusion": status.person_intrusion}
     tripped = [name for name, on in flags.items() if on]
     if status.relaxed_pairs:
         tripped.append(f"gave way: {', '.join(status.relaxed_pairs[:3])}{' …' if len(status.relaxed_pairs) > 3 else ''}")

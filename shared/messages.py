@@ -237,7 +237,8 @@ class SafetyStatus(Message):
         "tick: the retargeted person, q_cbf with no person to imitate, the resync target; None if not finite",
     )
     person_intrusion: bool = Field(
-        default=False, description="since the previous status, a person capsule was inside the margin (h < 0) while the robot retreated or held"
+        default=False, description="since the previous status, a person capsule was inside a robot capsule's margin (h < 0): the "
+        "robot stopped or retreated (safety.on_intrusion)"
     )
     watchdog_trips: dict[str, int] = Field(
         default_factory=dict, description="times each watchdog tripped: human_state, human_source, human_lost, "

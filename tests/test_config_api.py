@@ -80,13 +80,15 @@ class ApiServer:
 
 class FakeSafety:
     """Plays the safety service on the bus: applies every ConfigUpdate (if ``ack``) and reports
-    the applied version in a SafetyStatus at 50 Hz, with the given live values."""
+    the applied version in a SafetyStatus at 50 Hz, with the given live values (``intrusion``: every
+    status reports a person inside a margin)."""
 
     def __init__(self, bus: Bus, ack: bool = True, report_version: int | None = None, mode: SafetyMode = SafetyMode.ACTIVE,
-                 h_self: float = 0.031, h_human: float | None = 0.142, robot_id: str | None = None) -> None:
+                 h_self: float = 0.031, h_human: float | None = 0.142, robot_id: str | None = None,
+                 intrusion: bool = False) -> None:
         self.version = report_version or 0
         self.ack = ack and report_version is None
-        self.mode, self.h_self, self.h_human = mode, h_self, h_human
+        self.mode, self.h_self, self.h_human, self.intrusion = mode, h_self, h_human, intrusion
         self.published = 0
         self._publisher = bus.publisher("safety/status", robot_id=robot_id)
         bus.subscribe("config", self._on_config, robot_id=robot_id)
@@ -104,7 +106,7 @@ class FakeSafety:
                     stamp=time.monotonic(), mode=self.mode, min_h_self=self.h_self, min_h_human=self.h_human,
                     active_constraints=3, total_constraints=63, qp_solve_time_ms=0.012 + 0.001 * (self.published % 5),
                     step_time_ms=0.2, config_version=self.version, backend="daqp", executor_holding=True,
-                    watchdog_trips={"executor_command": 2},
+                    watchdog_trips={"executor_command": 2}, person_intrusion=self.intrusion,
                 )
             )
             self.published += 1

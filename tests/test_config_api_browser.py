@@ -142,6 +142,36 @@ def test_changing_gamma_in_the_form_reaches_the_config(page, console: ApiServer,
     assert console.http.get("/api/config").json()["safety"]["phi"] == before["safety"]["phi"]
 
 
+def test_person_prediction_and_intrusion_response_in_the_form(page, console: ApiServer, bus: Bus) -> None:  # noqa: F811
+    safety = console.http.get("/api/config").json()["safety"]
+    form = "#safety-form "
+    assert float(page.locator(form + "input[name=human_predict_s]").input_value()) == safety["human_predict_s"]
+    assert page.locator(form + "select[name=on_intrusion]").input_value() == safety["on_intrusion"] == "stop"
+    with FakeSafety(bus, intrusion=True, ack=False):  # the default response: a protective stop
+        sync_api.expect(page.locator("#intrusion")).to_have_text("yes: the robot stops")
+
+    page.fill("#token", TOKEN)
+    with FakeSafety(bus, intrusion=True):
+        page.fill(form + "input[name=human_predict_s]", "0.05")
+        page.select_option(form + "select[name=on_intrusion]", "retreat")
+        page.click("#apply-safety")
+        sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
+        sync_api.expect(page.locator("#intrusion")).to_have_text("yes: the robot retreats")
+    after = console.http.get("/api/config").json()
+    assert (after["safety"]["human_predict_s"], after["safety"]["on_intrusion"]) == (0.05, "retreat")
+    changed = console.http.get("/api/config/history").json()["entries"][0]
+    assert "safety.human_predict_s" in str(changed) and "safety.on_intrusion" in str(changed)
+    assert "safety.gamma" not in str(changed)  # only what was edited is sent
+
+    with FakeSafety(bus):  # back to the default, from the form
+        page.fill(form + "input[name=human_predict_s]", str(safety["human_predict_s"]))
+        page.select_option(form + "select[name=on_intrusion]", "stop")
+        page.click("#apply-safety")
+        sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
+    restored = console.http.get("/api/config").json()["safety"]
+    assert (restored["human_predict_s"], restored["on_intrusion"]) == (safety["human_predict_s"], "stop")
+
+
 def test_calibrate_button(page, console: ApiServer, bus: Bus) -> None:  # noqa: F811
     page.fill("#token", TOKEN)
     theta = [0.0, 0.05, 0.1, 0.0, 0.3, 0.1, 0.0, 0.3]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from services.executor.mujoco.executor import MujocoExecutor, open_viewer
-from services.executor.mujoco.model import PDGains, SimModelError, servo_name
+from services.executor.mujoco.model import STICTION_IMPEDANCE, PDGains, SimModelError, servo_name
 from services.executor.mujoco.sim import SimRobot
 from shared.config import ExecutorConfig
 from shared.names import CAPSULE_NAMES
@@ -202,6 +202,38 @@ def test_the_joints_friction_is_fed_forward_with_the_commanded_velocity(sim: Sim
     finally:
         sim.gains = GAINS
     assert without > 0.0015 and with_ff < 0.25 * without, (with_ff, without)
+
+
+def imitation_dofs(sim: SimRobot) -> np.ndarray:
+    """The imitation joints' dof indices in ``sim.model``."""
+    return sim.model.jnt_dofadr[[sim.model.joint(name).id for name in sim.joint_names]]
+
+
+def _creep_within_friction(sim: SimRobot) -> np.ndarray:
+    """(8,) rad/s: each imitation joint's speed 0.5–0.6 s after being commanded 0.9 f/kp away
+    from where it rests (its servo's torque stays below the joint's dry friction f)."""
+    sim.reset()
+    kp = np.array([sim.gains.of(joint, True)[0] for joint in sim.joint_names])
+    sim.set_command(sim.q_home + 0.9 * sim.model.dof_frictionloss[imitation_dofs(sim)] / kp)
+    sim.step(round(0.5 / sim.timestep))
+    before = sim.q
+    sim.step(round(0.1 / sim.timestep))
+    return np.abs(sim.q - before) / 0.1
+
+
+def test_a_servo_held_within_its_friction_does_not_creep(sim: SimRobot) -> None:
+    """Stiction: a joint loaded below its dry friction stays where it is (a geared joint does). With
+    MuJoCo's default soft friction (impedance 0.9–0.95) the same servos drift ≈ 1 mrad/s: a robot
+    commanded to stand still near a person would keep closing in on them."""
+    assert (sim.model.dof_solimp[imitation_dofs(sim), :2] == STICTION_IMPEDANCE).all()
+    held = _creep_within_friction(sim)
+    default = sim.model.dof_solimp[:, :2].copy()
+    sim.model.dof_solimp[:, :2] = 0.9, 0.95  # MuJoCo's default
+    try:
+        soft = _creep_within_friction(sim)
+    finally:
+        sim.model.dof_solimp[:, :2] = default
+    assert held.max() < 2e-5 and soft.max() > 5e-4, (held, soft)
 
 
 def test_arm_commanded_into_the_torso_is_a_robot_robot_contact(sim: SimRobot) -> None:

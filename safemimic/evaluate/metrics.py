@@ -47,7 +47,8 @@ person, every pair, every robot surface):
   steps at which the command u* itself closes such a pair faster than 1 mm/s (its velocity at the
   robot's pose, along the same normal): what the filter asked for. The other steps are the
   servos moving where their command does not — trailing it, or settling on it after the command
-  stopped (a servo at rest creeps within the joint friction's dead band, f/kp = 2 mrad on an arm);
+  stopped (the simulated joints stick within their friction's dead band, f/kp = 2 mrad on an arm,
+  as a geared joint does: :data:`~services.executor.mujoco.model.STICTION_IMPEDANCE`);
 - ``robot_caused_contact_mm`` / ``robot_approach_mm``: how far the robot closed in over those
   steps, Σ_k Δt · (the fastest closing speed of a touching / an approached pair at step k), mm:
   the size of what the step counts count;

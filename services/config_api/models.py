@@ -358,7 +358,8 @@ class StatusResponse(_View):
     backend: str | None
     dropped: dict[str, int]
     relaxed_pairs: list[str] = Field(default_factory=list, description="rows that gave way (mode relaxed): robot–person pairs, or an already violated hard row")
-    person_intrusion: bool | None = Field(default=None, description="a person capsule inside the margin while the robot retreats")
+    person_intrusion: bool | None = Field(default=None, description="a person capsule was inside a robot capsule's margin since the previous status "
+                                               "(the robot stops or retreats: safety.on_intrusion)")
 
     @classmethod
     def build(cls, status: Received[SafetyStatus] | None, human: Received[HumanState] | None,

@@ -4,6 +4,7 @@
 
 const WINDOW_S = 10;            // plotted history (s)
 const MODE_COLORS = { nominal: "#2e8540", active: "#c77c02", relaxed: "#c0392b", hold: "#6c3483" };
+const SAFETY_NUMBERS = ["gamma", "phi", "self_margin", "human_margin", "human_predict_s", "k", "dt"];  // safety form's numbers (API names)
 const samples = [];             // {t, hSelf, hHuman, solve, mode}
 let loaded = null;              // the last GET /api/config response
 let dirty = false;              // a form was edited since it was filled
@@ -81,8 +82,9 @@ function jointHeader(table) {
 function fillForms() {
   const s = loaded.safety, r = loaded.retarget;
   const sf = $("safety-form");
-  for (const name of ["gamma", "phi", "self_margin", "human_margin", "k", "dt"]) sf.elements[name].value = s[name];
+  for (const name of SAFETY_NUMBERS) sf.elements[name].value = s[name];
   sf.elements.human_velocity_term.checked = s.human_velocity_term;
+  sf.elements.on_intrusion.value = s.on_intrusion;
 
   const groups = $("pair-groups");
   groups.querySelectorAll("label").forEach((l) => l.remove());
@@ -141,11 +143,12 @@ const same = (a, b) => JSON.stringify(a) === JSON.stringify(b);
 
 function safetyPatch() {
   const f = $("safety-form"), s = loaded.safety, patch = {};
-  for (const name of ["gamma", "phi", "self_margin", "human_margin", "k", "dt"]) {
+  for (const name of SAFETY_NUMBERS) {
     const value = Number(f.elements[name].value);
     if (value !== s[name]) patch[name] = value;
   }
   if (f.elements.human_velocity_term.checked !== s.human_velocity_term) patch.human_velocity_term = f.elements.human_velocity_term.checked;
+  if (f.elements.on_intrusion.value !== s.on_intrusion) patch.on_intrusion = f.elements.on_intrusion.value;
   for (const name of ["w", "u_min", "u_max", "accel_max"]) {
     const value = readVector(f, name);
     if (!same(value, s[name])) patch[name] = value;
@@ -232,9 +235,11 @@ function onStatus(status) {
   // tripped watchdogs now, e.g. "human_stale, executor_holding"; "ok" when none
   const tripped = Object.entries(status.watchdogs || {}).filter(([, on]) => on).map(([name]) => name);
   $("watchdogs").textContent = status.available ? (tripped.join(", ") || "ok") : "–";
-  // robot–person pairs that gave way (relaxed), and a person inside the margin while the robot retreats
+  // robot–person pairs that gave way (relaxed), and a person inside a robot capsule's margin
   $("relaxed-pairs").textContent = status.available ? ((status.relaxed_pairs || []).join(", ") || "none") : "–";
-  $("intrusion").textContent = status.available ? (status.person_intrusion ? "yes: the robot retreats" : "no") : "–";
+  // what the robot does about it is the configured response (safety.on_intrusion)
+  const response = loaded && loaded.safety.on_intrusion === "retreat" ? "the robot retreats" : "the robot stops";
+  $("intrusion").textContent = status.available ? (status.person_intrusion ? "yes: " + response : "no") : "–";
   $("applied-version").textContent = status.applied_config_version === null ? "–" : "v" + status.applied_config_version;
   if (!status.available) return;
   samples.push({ t: performance.now() / 1000, hSelf: status.h_min_self, hHuman: status.h_min_human, solve: status.solve_time_ms, mode: status.mode });

@@ -18,6 +18,8 @@ one such as Menagerie's G1 with meshes) and edits it with ``mujoco.MjSpec`` befo
   not push the simulated robot (a person walking into it would bend its legs into each other,
   "robot–robot" contacts the robot never made); robot–human contacts are measured instead
   (:mod:`services.executor.mujoco.contacts`);
+- **stiction**: every robot joint's dry friction (``frictionloss``) holds a joint loaded below it
+  still (:data:`STICTION_IMPEDANCE`), where MuJoCo's default soft friction lets it creep;
 - **adjacent links**: MuJoCo ignores parent–child contacts except when the parent is welded to
   the world, so each static body (the welded base and whatever hangs on it without a joint) gets
   an explicit exclusion with each jointed child;
@@ -46,6 +48,7 @@ __all__ = [
     "PARK_POSITION",
     "PDGains",
     "SimModel",
+    "STICTION_IMPEDANCE",
     "SimModelError",
     "build_model",
     "human_body_name",
@@ -58,6 +61,13 @@ HUMAN_GEOM_GROUP = 4
 PARK_POSITION = np.array([0.0, 0.0, -1000.0])
 #: Colours of person 0 (the world's person) and of any further person (e.g. the perceived one).
 _HUMAN_RGBA = ((0.95, 0.7, 0.55, 0.5), (0.3, 0.55, 0.95, 0.25))
+#: Impedance (MuJoCo ``solimp`` d_min = d_max) of every robot joint's dry-friction constraint: stiction.
+#: MuJoCo's friction is soft: a joint loaded below its ``frictionloss`` f still creeps at
+#: q̇ ≈ (1 − d)/d · (τ/I) / b (b = 2/(d · timeconst)); at the default d = 0.9 a servo holding an arm
+#: within its dead band (|kp e| < f) drifts ≈ 1 mrad/s for as long as it holds. A geared joint
+#: does not: below f it sticks. MuJoCo's largest impedance makes the creep ≈ 1000× smaller
+#: (< 0.01 mrad/s); motion at or above f (sliding) is unchanged.
+STICTION_IMPEDANCE = mujoco.mjMAXIMP
 #: Longest physics step a caller may ask for (s).
 _MAX_TIMESTEP = 0.05
 
@@ -214,6 +224,7 @@ def _add_servos(mjs: mujoco.MjSpec, base: mujoco.MjsBody, spec: RobotSpec, gains
         servo.set_to_position(kp=kp, kv=kd)
         servo.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
         joint.actgravcomp = gains.gravity_compensation
+        joint.solimp_friction[:2] = STICTION_IMPEDANCE
     if gains.gravity_compensation:
         for body in [base, *base.find_all(mujoco.mjtObj.mjOBJ_BODY)]:
             body.gravcomp = 1.0
