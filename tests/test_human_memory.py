@@ -46,6 +46,21 @@ def test_nothing_yet_and_valid_capsules_pass_through_padded() -> None:
     assert memory.capsules(14, False).velocities is None
 
 
+def test_a_stale_person_is_held_as_last_measured_without_velocity_or_sweep() -> None:
+    """``stale`` (the newest message older than ``safety.human_timeout_s``): the capsules as last
+    measured, whatever the velocity term and the sweep ask for; fresh, the same call sweeps them."""
+    memory = HumanMemory()
+    message = state(1.0, np.ones(7, bool))
+    memory.update(message, 0.0, HOLD_S)
+    stale, measured = memory.capsules(7, True, 0.093, stale=True), memory.capsules(7, False)
+    for a, b in zip(stale, measured, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert stale.velocities is None and stale.sweep is None
+    fresh = memory.capsules(7, True, 0.093)
+    assert fresh.velocities is not None and (fresh.sweep > 0).all()
+    assert not np.array_equal(fresh.endpoints, measured.endpoints)
+
+
 def test_an_invalid_slot_is_held_without_velocity_then_forgotten_after_the_hold() -> None:
     memory = HumanMemory()
     memory.update(state(1.0, np.ones(7, bool)), 10.0, HOLD_S)

@@ -197,11 +197,9 @@ def run_episode(
             now_stale = t - human.t[newest] > timeout
             if newest != applied or now_stale != stale:
                 memory.update(state, human.t[newest], hold)
-                velocity = use_velocity and not now_stale
-                external = memory.capsules(safety.pairs.n_external, velocity, 0.0 if now_stale else predict_s)
-                safety.barrier.set_external(*external)
+                safety.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity, predict_s, now_stale))
                 if seen is not None:
-                    seen.barrier.set_external(*memory.capsules(safety.pairs.n_external, velocity))
+                    seen.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity, stale=now_stale))
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     r = safety.retargeter
                     nominal.update(*r.track(state), state.stamp, human.t[newest], horizon, r.q_min, r.q_max)

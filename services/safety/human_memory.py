@@ -121,13 +121,16 @@ class HumanMemory:
         if message.capsule_velocities is not None:
             self._velocities = np.where(seen[:, None, None], message.capsule_velocities, 0.0)
 
-    def capsules(self, n_external: int, use_velocity: bool, predict_s: float = 0.0) -> ExternalCapsules:
+    def capsules(self, n_external: int, use_velocity: bool, predict_s: float = 0.0,
+                 stale: bool = False) -> ExternalCapsules:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
         ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s``
         τ > 0 (s): each slot valid in the newest message swept ahead by :func:`swept_capsules` (a lost
-        slot, whose velocity is 0, is unchanged)."""
-        velocities = self._velocities if use_velocity else None
-        if predict_s > 0.0 and self._velocities is not None:
+        slot, whose velocity is 0, is unchanged). ``stale``: the newest message is older than
+        ``safety.human_timeout_s`` (or its source is gone): the capsules as last measured, neither
+        velocity nor sweep (a velocity that old says nothing of where the person is now)."""
+        velocities = self._velocities if use_velocity and not stale else None
+        if predict_s > 0.0 and not stale and self._velocities is not None:
             endpoints, radii, sweep = swept_capsules(self._endpoints, self._radii, self._velocities, predict_s)
             return padded(n_external, endpoints, radii, self._valid, velocities, sweep)
         return padded(n_external, self._endpoints, self._radii, self._valid, velocities)

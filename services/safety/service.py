@@ -360,9 +360,8 @@ class SafetyService(ScheduledService):
         message = received.message
         safety = self.conf.safety
         self._memory.update(message, received.received, safety.lost_human_hold_s)
-        use_velocity = safety.human_velocity_term and not stale
-        predict_s = 0.0 if stale else safety.human_predict_s
-        self.pipeline.barrier.set_external(*self._memory.capsules(self.pipeline.pairs.n_external, use_velocity, predict_s))
+        self.pipeline.barrier.set_external(*self._memory.capsules(self.pipeline.pairs.n_external, safety.human_velocity_term,
+                                                                  safety.human_predict_s, stale))
         if not stale:  # stale: the tick stops imitating (q_nom = q_cbf)
             retargeter = self.pipeline.retargeter
             self._q_nom, dq_nom = retargeter.track(message)
