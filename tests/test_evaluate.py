@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from safemimic.evaluate.evaluation import evaluate, evaluation_config
+from safemimic.evaluate.goals import goal_report, goals_markdown
 from safemimic.evaluate.metrics import RUN_KEYS, TIMING_KEYS, deterministic_part
 from services.perception.placement import Placement
 from services.perception.scenarios import get_scenario, scenario_recording
@@ -200,6 +201,9 @@ def test_suite_over_the_development_clips_writes_one_row_per_clip_and_placement(
     table = (out / "summary.md").read_text()
     assert sum(line.startswith("| bandai") for line in table.splitlines()) == 2 * len(clips)
     assert "**failed:**" in table and "robot-caused" in table
+    assert summary["goals"] == goal_report(summary["runs"])  # the evaluated runs, the broken one left out
+    assert all(g["met"] + g["failed"] + g["not_judged"] == 2 * len(clips) for g in summary["goals"])
+    assert "\n".join(goals_markdown(summary["goals"])) in table
     assert (out / "summary.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "broken" in done.stderr and f"{2 * len(clips)} run folders" in done.stdout
 

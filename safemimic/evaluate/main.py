@@ -73,7 +73,10 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         "--latency-ms, optionally noisy (--depth-noise-m, --dropout, --seed), then filtered as the perception "
         "service does.\n\n"
         "Writes metrics.json, contacts.json, joints.png, barriers.png and snapshot.png into --out; with --suite "
-        "one such folder per clip and placement plus summary.json, summary.md and summary.png."
+        "one such folder per clip and placement plus summary.json, summary.md and summary.png; summary.md ends "
+        "with the goals: how many runs meet each safety and imitation goal, which fail, and which of those "
+        "fail only because the evaluator's own floor (the person inside the pelvis or legs, the target seen one "
+        "latency late, the retargeting's error) already misses it."
     )
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--skeleton", metavar="FILE.npz", help="a skeleton recording (architecture §6)")

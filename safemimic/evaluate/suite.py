@@ -5,8 +5,12 @@ process (``--jobs``), written to ``OUT/<clip>-<placement>/`` exactly as a single
 folder; a file that cannot be evaluated is reported in its row and the others still run. Then:
 
 - ``OUT/summary.json``: ``{"settings": {...}, "runs": [{"clip", "placement", "cbf", "nominal",
-  "input"} | {"clip", "placement", "error"}]}``, the run objects as in ``metrics.json``;
-- ``OUT/summary.md``: one row per run (:data:`COLUMNS`);
+  "input"} | {"clip", "placement", "error"}], "goals": [...]}``, the run objects as in
+  ``metrics.json``, the goals as :func:`~safemimic.evaluate.goals.goal_report` gives them;
+- ``OUT/summary.md``: one row per run (:data:`COLUMNS`), then the goals: how many runs meet each
+  of the project's safety and imitation goals, which fail, and which of those fail only because
+  the evaluator's own floor already misses it (:mod:`safemimic.evaluate.goals`; also
+  ``summary.json``'s ``"goals"``);
 - ``OUT/summary.png``: the same at a glance (true contacts with and without the CBF, the robot-
   caused share, min true clearance, min self h, lag, RMS against the true person).
 
@@ -26,6 +30,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
+from safemimic.evaluate.goals import goal_report, goals_markdown
 from safemimic.evaluate.person import CameraModel
 from safemimic.evaluate.progress import ProgressBar
 
@@ -90,7 +95,8 @@ def _num(value: float | None, fmt: str) -> str:
 
 
 def summary_markdown(summary: dict[str, Any]) -> str:
-    """summary.md: the settings, a row per run, and what each column means."""
+    """summary.md: the settings, a row per run, the goals (:func:`goals_markdown`) and what each column
+    means."""
     s = summary["settings"]
     lines = [
         "# Evaluation suite", "",
@@ -118,6 +124,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             f"{_num(cbf['fidelity']['direction_error_deg_p95_at_target'], '.0f')}",
         ]
         lines.append(f"| {run['clip']} | {run['placement']} | " + " | ".join(cells) + " |")
+    lines += ["", *goals_markdown(goal_report(summary["runs"]))]
     lines += ["", "Columns:", ""] + [f"- **{h}**: {what}" for h, what in COLUMNS]
     return "\n".join(lines) + "\n"
 
@@ -233,6 +240,7 @@ def run_suite(args: argparse.Namespace, camera: CameraModel) -> int:
         "settings": {**camera.settings(), "seconds": args.seconds, "robot_model": args.robot_model,
                      "config": args.config, "placements": placements, "clips": [c.name for c in clips], "jobs": jobs},
         "runs": rows,
+        "goals": goal_report(rows),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
     (out / "summary.md").write_text(summary_markdown(summary))
