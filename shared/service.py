@@ -5,7 +5,8 @@ opened it (tests and in-process drivers pass their own). :class:`ScheduledServic
 deadline counters of a fixed-rate control loop (:class:`~shared.schedule.FixedRateSchedule`).
 What every loop keeps the same way: :class:`StepErrors` (a step that raises), :class:`StepTimes`
 (how long its steps take), :class:`Refusals` (messages refused, per topic) and :class:`Pending`
-(a configuration accepted on a callback thread, applied by the loop at its next step).
+(a configuration accepted on a callback thread, applied by the loop at its next step), and
+:func:`validated_update` (a configuration update checked on arrival, or counted refused).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from typing import Generic, Self, TypeVar
 import numpy as np
 
 from shared.bus import Bus
-from shared.config import StackConfig
+from shared.config import ConfigError, StackConfig, validate_config
+from shared.messages import ConfigUpdate
 from shared.schedule import FixedRateSchedule
 
 T = TypeVar("T")
@@ -93,6 +95,18 @@ class Refusals:
         total.update(bus.callback_errors)
         total.update(self._own)
         return {topic: int(count) for topic, count in total.items() if count}
+
+
+def validated_update(update: ConfigUpdate, refusals: Refusals, log: logging.Logger) -> StackConfig | None:
+    """``update``'s configuration validated, or None when it is invalid: then counted as refused on the
+    ``config`` topic and logged with the reason (:class:`~shared.config.ConfigError` names the bad
+    fields); a service goes on with the configuration it has."""
+    try:
+        return validate_config(update.config, origin=f"config update v{update.version}")
+    except ConfigError as exc:
+        refusals.refuse("config")
+        log.warning("rejected config update v%d: %s", update.version, exc)
+        return None
 
 
 class Pending(Generic[T]):

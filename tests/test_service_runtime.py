@@ -1,7 +1,7 @@
 """The loop runtime every service shares (shared.service): a step that raises is counted, logged
 once per streak (and the first ten), skipped; a streak as long as the limit is a bug and raises.
-Step times keep the last and a window; refusals add the service's own to the bus's; a pending item
-is the newest put, taken once; the achieved rate is the ticks over the elapsed time."""
+Step times keep the last and a window; refusals add the service's own to the bus's; a config update
+is validated on arrival or counted refused with its reason; a pending item is the newest put, taken once; the achieved rate is the ticks over the elapsed time."""
 
 from __future__ import annotations
 
@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from shared.bus import Bus
-from shared.config import BusConfig
-from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes
+from shared.config import BusConfig, StackConfig
+from shared.messages import ConfigUpdate
+from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes, validated_update
 from tests.support.bus import await_route
 from tests.support.processes import free_port
 
@@ -87,6 +88,20 @@ def test_pending_holds_the_newest_item_until_taken_once() -> None:
     for thread in threads:
         thread.join()
     assert pending.take() in range(20) and pending.peek() is None
+
+
+def test_a_config_update_is_validated_or_counted_refused_with_its_reason(caplog: pytest.LogCaptureFixture) -> None:
+    refusals, log = Refusals(), logging.getLogger("test.config")
+    good = StackConfig().model_dump(mode="json")
+    good["safety"]["gamma"] = 12.0
+    accepted = validated_update(ConfigUpdate(stamp=0.0, version=2, config=good), refusals, log)
+    assert isinstance(accepted, StackConfig) and accepted.safety.gamma == 12.0
+    assert refusals.own("config") == 0
+    bad = {**good, "safety": {**good["safety"], "gamma": -1.0}}
+    with caplog.at_level(logging.WARNING, logger="test.config"):
+        assert validated_update(ConfigUpdate(stamp=0.0, version=3, config=bad), refusals, log) is None
+    assert refusals.own("config") == 1
+    assert "rejected config update v3" in caplog.text and "gamma" in caplog.text
 
 
 @pytest.mark.integration

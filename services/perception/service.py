@@ -33,9 +33,9 @@ from services.perception.sources import SourceUnavailable, open_source
 from services.perception.base import SkeletonFrame, SkeletonSource
 from shared.bus import Bus, topic_key
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, PerceptionConfig, SkeletonSourceName, StackConfig, validate_config
+from shared.config import ConfigError, PerceptionConfig, SkeletonSourceName, StackConfig
 from shared.messages import ConfigUpdate
-from shared.service import BusService, Pending, Refusals, StepErrors
+from shared.service import BusService, Pending, Refusals, StepErrors, validated_update
 from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.perception")
@@ -75,11 +75,8 @@ class PerceptionService(BusService):
 
     def on_config(self, update: ConfigUpdate) -> None:
         """Validate an accepted change (Zenoh thread); it is applied before the next frame."""
-        try:
-            new = validate_config(update.config, origin=f"config update v{update.version}")
-        except ConfigError as exc:
-            self.refusals.refuse("config")
-            log.warning("rejected config update v%d: %s", update.version, exc)
+        new = validated_update(update, self.refusals, log)
+        if new is None:
             return
         self._pending.put((update.version, new))
 

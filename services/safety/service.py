@@ -58,9 +58,9 @@ from services.safety.watchdogs import Watchdogs
 from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
-from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes
+from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes, validated_update
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, RetargetMethod, StackConfig, validate_config
+from shared.config import ConfigError, RetargetMethod, StackConfig
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
 from shared.stop_signals import stop_on_signals
 
@@ -209,11 +209,8 @@ class SafetyService(ScheduledService):
 
     def on_config(self, update: ConfigUpdate) -> None:
         """Validate an update; build a new pipeline here if the structure changed; queue it."""
-        try:
-            new = validate_config(update.config, origin=f"config update v{update.version}")
-        except ConfigError as exc:
-            self.refusals.refuse("config")
-            log.warning("rejected config update v%d: %s", update.version, exc)
+        new = validated_update(update, self.refusals, log)
+        if new is None:
             return
         # The session and the key expressions are fixed for this process's life.
         if new.bus != self.conf.bus or new.robot_id != self.conf.robot_id:
