@@ -201,6 +201,10 @@ def test_suite_over_the_development_clips_writes_one_row_per_clip_and_placement(
     table = (out / "summary.md").read_text()
     assert sum(line.startswith("| bandai") for line in table.splitlines()) == 2 * len(clips)
     assert "**failed:**" in table and "robot-caused" in table
+    fidelity = rows[(clips[0].stem, "side-by-side")]["cbf"]["fidelity"]
+    cell = [("—" if fidelity[key] is None else f"{fidelity[key]:.0f}")
+            for key in ("lag_ms", "lag_ms_target", "lag_ms_command", "lag_ms_servo")]
+    assert f"| {cell[0]} ({cell[1]} / {cell[2]} / {cell[3]}) |" in table  # the lag, and where it comes from
     assert summary["goals"] == goal_report(summary["runs"])  # the evaluated runs, the broken one left out
     assert all(g["met"] + g["failed"] + g["not_judged"] == 2 * len(clips) for g in summary["goals"])
     assert "\n".join(goals_markdown(summary["goals"])) in table

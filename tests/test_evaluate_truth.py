@@ -322,14 +322,15 @@ def test_fidelity_is_judged_from_one_second_after_the_person_is_first_perceived(
     q_sim[:start] += 1.0  # still on its way from home
     free, directions = np.ones(n, bool), np.full((n, 4), 10.0)
     directions[:start] = 170.0
-    result = fidelity(q_true, q_sim, free, directions, np.full((n, 4), 4.0), perceived, dt, 0.06)
+    result = fidelity(q_true, q_sim, free, directions, np.full((n, 4), 4.0), perceived, dt, 0.06, q_nom=q_true, q_cbf=q_sim)
     assert result["rms_true"] == 0.0 and result["rms_true_free"] == 0.0 and result["lag_ms"] == 0.0
     assert result["direction_error_deg_p95"] == 10.0 and result["direction_error_deg_p95_at_target"] == 4.0
     assert result["judged_from_s"] == pytest.approx(start * dt)
     q_sim[start + 10] += 1.0  # one step off inside the window counts
-    assert fidelity(q_true, q_sim, free, directions, directions, perceived, dt, 0.06)["rms_true"] > 0.0
-    never = fidelity(q_true, q_sim, free, directions, directions, np.zeros(n, bool), dt, 0.06)
+    assert fidelity(q_true, q_sim, free, directions, directions, perceived, dt, 0.06, q_nom=q_true, q_cbf=q_sim)["rms_true"] > 0.0
+    never = fidelity(q_true, q_sim, free, directions, directions, np.zeros(n, bool), dt, 0.06, q_nom=q_true, q_cbf=q_sim)
     assert never["rms_true"] is None and never["judged_from_s"] is None and never["lag_ms"] is None
+    assert never["lag_ms_target"] is never["lag_ms_command"] is never["lag_ms_servo"] is None
 
 
 def test_a_robot_exactly_one_latency_late_scores_the_latency_floor() -> None:
@@ -340,14 +341,18 @@ def test_a_robot_exactly_one_latency_late_scores_the_latency_floor() -> None:
     t = np.arange(n) * dt
     q_true = np.tile(amplitude * np.sin(omega * t)[:, None], (1, 8))
     perceived, free, directions = np.ones(n, bool), np.ones(n, bool), np.full((n, 4), 5.0)
-    late = fidelity(q_true, delayed(q_true, 30), free, directions, directions, perceived, dt, latency)
+    late = fidelity(q_true, delayed(q_true, 30), free, directions, directions, perceived, dt, latency,
+                    q_nom=delayed(q_true, 20), q_cbf=delayed(q_true, 27))
     expected = amplitude * np.sqrt(2) * abs(np.sin(omega * latency / 2))
     assert late["rms_true_free_latency_floor"] == pytest.approx(expected, rel=0.01)
     assert late["rms_true_free"] == pytest.approx(late["rms_true_free_latency_floor"], abs=1e-6)
     assert late["lag_ms"] == pytest.approx(1e3 * latency)
-    later = fidelity(q_true, delayed(q_true, 50), free, directions, directions, perceived, dt, latency)
+    # the stages: target 20 steps behind the truth, command 7 behind it, servos 3 behind that
+    assert (late["lag_ms_target"], late["lag_ms_command"], late["lag_ms_servo"]) == pytest.approx((40.0, 14.0, 6.0))
+    later = fidelity(q_true, delayed(q_true, 50), free, directions, directions, perceived, dt, latency,
+                     q_nom=q_true, q_cbf=q_true)
     assert later["rms_true_free"] > later["rms_true_free_latency_floor"]
-    free_of_motion = fidelity(q_true, q_true, free, directions, directions, perceived, dt, 0.0)
+    free_of_motion = fidelity(q_true, q_true, free, directions, directions, perceived, dt, 0.0, q_nom=q_true, q_cbf=q_true)
     assert free_of_motion["rms_true_free"] == free_of_motion["rms_true_free_latency_floor"] == 0.0
 
 
@@ -388,8 +393,11 @@ def test_evaluation_reports_the_truth_keys(tmp_path: Path) -> None:
         assert set(m["fidelity"]) == {"lag_ms", "rms_true", "rms_true_free", "direction_error_deg_p50",
                                       "direction_error_deg_p95", "direction_error_deg_p50_at_target",
                                       "direction_error_deg_p95_at_target", "judged_from_s",
-                                      "rms_true_free_latency_floor"}
+                                      "rms_true_free_latency_floor", "lag_ms_target", "lag_ms_command",
+                                      "lag_ms_servo"}
         assert m["fidelity"]["lag_ms"] is not None and m["fidelity"]["lag_ms"] > 0
+        # the target alone trails the true person by the camera latency (60 ms) and the point filter
+        assert m["fidelity"]["lag_ms_target"] >= 60.0 and m["fidelity"]["lag_ms_servo"] is not None
         assert m["true_contacts_fixed_bodies"] == 0  # beside the robot: only the arms meet
     assert metrics["nominal"]["true_contacts_robot_human"] > metrics["cbf"]["true_contacts_robot_human"]
     assert metrics["nominal"]["robot_caused_contact_steps_commanded"] > 0  # without the CBF the command drives in

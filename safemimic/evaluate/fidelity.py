@@ -10,6 +10,12 @@ its home pose to the person's first pose, which says nothing of how it follows a
   (q_sim(t) − q_true(t − τ))² over the judged steps of q_sim (q_true may reach back before them),
   in control steps; the median over those
   joints (null: no joint moves, or the run is shorter than the search range);
+- ``lag_ms_target`` / ``lag_ms_command`` / ``lag_ms_servo``: the same delay stage by stage, where
+  the lag comes from: the retargeted target q_nom behind q_true (camera latency, point filter, the
+  rate that carries q_nom between frames), the safe command q_cbf behind q_nom (the filter's
+  tracking: K, the fed-forward rate, binding rows, the acceleration bound) and the simulated joints
+  behind q_cbf (the servos). Each is a median over the joints its reference moves, so the three
+  need not add up to ``lag_ms`` exactly;
 - ``rms_true`` / ``rms_true_free``: RMS of q_sim − q_true (rad) over every step and joint / over
   the free steps (no constraint binds in the CBF run);
 - ``rms_true_free_latency_floor``: RMS of q_true(t − L) − q_true(t) over the same free steps, L
@@ -101,14 +107,18 @@ def delayed(q: np.ndarray, steps: int) -> np.ndarray:
 
 def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions: np.ndarray,
              directions_at_target: np.ndarray, perceived: np.ndarray, dt: float,
-             latency_s: float) -> dict[str, float | None]:
+             latency_s: float, *, q_nom: np.ndarray, q_cbf: np.ndarray) -> dict[str, float | None]:
     """The ``fidelity`` object of one run (module docstring): ``q_true``/``q_sim`` (N, 8) rad,
     ``free`` (N,) the free steps, ``directions``/``directions_at_target`` (N, 4) deg from
     :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) a perceived state is in force,
-    ``latency_s`` the camera latency (s)."""
+    ``latency_s`` the camera latency (s), ``q_nom``/``q_cbf`` (N, 8) rad the run's target and safe
+    command (the stages of the lag)."""
     start = judged_from(perceived, dt)
     first = len(q_true) if start is None else min(start, len(q_true))
     lag = lag_ms(q_true, q_sim, dt, first)
+    stages = {f"lag_ms_{stage}": lag_ms(reference, follower, dt, first)
+              for stage, reference, follower in (("target", q_true, q_nom), ("command", q_nom, q_cbf),
+                                                 ("servo", q_cbf, q_sim))}
     judged = slice(first, None)
     late = delayed(q_true, round(latency_s / dt))[judged]
     q_true, q_sim, free = q_true[judged], q_sim[judged], free[judged]
@@ -124,6 +134,7 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
 
     return {
         "lag_ms": lag,
+        **stages,
         "rms_true": rms(error),
         "rms_true_free": rms(error[free]),
         "rms_true_free_latency_floor": rms((late - q_true)[free]),

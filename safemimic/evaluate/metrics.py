@@ -172,7 +172,7 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         "fidelity": fidelity(person.q_true, ep.q_sim, free,
                              direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
                              directions_at_target, ep.human >= 0, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0,
-                             latency_s),
+                             latency_s, q_nom=ep.q_nom, q_cbf=ep.q_cbf),
     }
     assert tuple(metrics) == RUN_KEYS
     return metrics

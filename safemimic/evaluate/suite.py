@@ -46,8 +46,11 @@ COLUMNS: tuple[tuple[str, str], ...] = (
      "is below φ / of those, the ones the command u* closed too; in brackets, how far it closed in over them (mm)"),
     ("min true clearance (mm)", "CBF run: smallest robot–person capsule surface distance at the simulated joints"),
     ("min self h (mm)", "CBF run: smallest self-pair barrier at the simulated joints (true_min_h_self)"),
-    ("lag (ms)", "CBF run: median delay of the simulated joints behind the true person's retargeted angles "
-     "(fidelity columns: from 1 s after the person is first perceived, when the robot has left its home pose)"),
+    ("lag (ms) (target / command / servos)", "CBF run: median delay of the simulated joints behind the true person's "
+     "retargeted angles (fidelity columns: from 1 s after the person is first perceived, when the robot has left its "
+     "home pose); in brackets the stages (lag_ms_target / _command / _servo): q_nom behind the truth (latency, point "
+     "filter, the rate between frames), q_cbf behind q_nom (tracking, binding rows, acceleration bound), the "
+     "simulated joints behind q_cbf"),
     ("rms true free (rad): robot / latency floor", "CBF run: RMS of q_sim − q_true while no constraint binds / "
      "of q_true seen one camera latency late against q_true over the same steps (a robot exactly at what it was "
      "shown scores that: no controller that does not predict the person does better)"),
@@ -117,7 +120,8 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             f"{cbf['robot_approach_steps']} / {cbf['robot_approach_steps_commanded']} ({cbf['robot_approach_mm']:.1f})",
             _mm(cbf["true_min_clearance_human"]),
             _mm(cbf["true_min_h_self"]),
-            _num(cbf["fidelity"]["lag_ms"], ".0f"),
+            f"{_num(cbf['fidelity']['lag_ms'], '.0f')} ({_num(cbf['fidelity']['lag_ms_target'], '.0f')} / "
+            f"{_num(cbf['fidelity']['lag_ms_command'], '.0f')} / {_num(cbf['fidelity']['lag_ms_servo'], '.0f')})",
             f"{_num(cbf['fidelity']['rms_true_free'], '.3f')} / "
             f"{_num(cbf['fidelity']['rms_true_free_latency_floor'], '.3f')}",
             f"{_num(cbf['fidelity']['direction_error_deg_p95'], '.0f')} / "
