@@ -176,10 +176,14 @@ def plot_summary(summary: dict[str, Any], path: Path) -> Path:
     floor = axes[1, 1].scatter(x, values("cbf", "fidelity", sub="rms_true_free_latency_floor"), marker="_", s=200,
                                color="black", zorder=3, label="latency floor")
     axes[1, 1].legend(handles=[floor], fontsize=7)
+    s = summary["settings"]
+    target = axes[1, 0].scatter(x, values("cbf", "fidelity", sub="lag_ms_target"), marker="_", s=200, color="black",
+                                zorder=3, label="of it, the target q_nom's (latency, point filter)")
+    goal = axes[1, 0].axhline(s["latency_ms"] + 20.0, color="tab:green", ls="--", lw=1.0, label="goal: latency + 20 ms")
+    axes[1, 0].legend(handles=[target, goal], fontsize=7)
     for ax in axes.flat:
         ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
         ax.grid(alpha=0.3, axis="y")
-    s = summary["settings"]
     fig.suptitle(f"Evaluation suite: {len(runs)} runs, camera latency {s['latency_ms']:g} ms", fontsize=11)
     fig.savefig(path, dpi=100)
     plt.close(fig)
