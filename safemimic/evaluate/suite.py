@@ -98,8 +98,8 @@ def _num(value: float | None, fmt: str) -> str:
 
 
 def summary_markdown(summary: dict[str, Any]) -> str:
-    """summary.md: the settings, a row per run, the goals (:func:`goals_markdown`) and what each column
-    means."""
+    """summary.md: the settings, a row per run, the goals (:func:`goals_markdown` of the summary's
+    ``"goals"``) and what each column means."""
     s = summary["settings"]
     lines = [
         "# Evaluation suite", "",
@@ -128,7 +128,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             f"{_num(cbf['fidelity']['direction_error_deg_p95_at_target'], '.0f')}",
         ]
         lines.append(f"| {run['clip']} | {run['placement']} | " + " | ".join(cells) + " |")
-    lines += ["", *goals_markdown(goal_report(summary["runs"]))]
+    lines += ["", *goals_markdown(summary["goals"])]
     lines += ["", "Columns:", ""] + [f"- **{h}**: {what}" for h, what in COLUMNS]
     return "\n".join(lines) + "\n"
 
@@ -251,10 +251,11 @@ def run_suite(args: argparse.Namespace, camera: CameraModel) -> int:
         "goals": goal_report(rows),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-    (out / "summary.md").write_text(summary_markdown(summary))
+    markdown = summary_markdown(summary)
+    (out / "summary.md").write_text(markdown)
     plot_summary(summary, out / "summary.png")
     failed = [r for r in rows if r is not None and "error" in r]
-    print(summary_markdown(summary))
+    print(markdown)
     for row in failed:
         print(f"safemimic evaluate: {row['clip']} ({row['placement']}) failed: {row['error']}", file=sys.stderr)
     print(f"wrote {out}/summary.json, summary.md, summary.png and {len(rows) - len(failed)} run folders")
