@@ -51,6 +51,9 @@ MOVING_RAD = 0.2
 #: Delay search range (s): how far the robot may trail / lead the person.
 MAX_LAG_S = 1.0
 MAX_LEAD_S = 0.2
+#: The stages of the lag (``lag_ms_<stage>``), each a (reference, follower) pair: q_nom behind q_true,
+#: q_cbf behind q_nom, q_sim behind q_cbf.
+LAG_STAGES = ("target", "command", "servo")
 _MIN_SEGMENT = 0.05  # m: shorter torso or limb segments give no direction
 
 
@@ -116,9 +119,8 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
     start = judged_from(perceived, dt)
     first = len(q_true) if start is None else min(start, len(q_true))
     lag = lag_ms(q_true, q_sim, dt, first)
-    stages = {f"lag_ms_{stage}": lag_ms(reference, follower, dt, first)
-              for stage, reference, follower in (("target", q_true, q_nom), ("command", q_nom, q_cbf),
-                                                 ("servo", q_cbf, q_sim))}
+    chain = (q_true, q_nom, q_cbf, q_sim)
+    stages = {f"lag_ms_{stage}": lag_ms(chain[i], chain[i + 1], dt, first) for i, stage in enumerate(LAG_STAGES)}
     judged = slice(first, None)
     late = delayed(q_true, round(latency_s / dt))[judged]
     q_true, q_sim, free = q_true[judged], q_sim[judged], free[judged]

@@ -30,6 +30,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
+from safemimic.evaluate.fidelity import LAG_STAGES
 from safemimic.evaluate.goals import goal_report, goals_markdown
 from safemimic.evaluate.person import CameraModel
 from safemimic.evaluate.progress import ProgressBar
@@ -120,8 +121,8 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             f"{cbf['robot_approach_steps']} / {cbf['robot_approach_steps_commanded']} ({cbf['robot_approach_mm']:.1f})",
             _mm(cbf["true_min_clearance_human"]),
             _mm(cbf["true_min_h_self"]),
-            f"{_num(cbf['fidelity']['lag_ms'], '.0f')} ({_num(cbf['fidelity']['lag_ms_target'], '.0f')} / "
-            f"{_num(cbf['fidelity']['lag_ms_command'], '.0f')} / {_num(cbf['fidelity']['lag_ms_servo'], '.0f')})",
+            f"{_num(cbf['fidelity']['lag_ms'], '.0f')} "
+            f"({' / '.join(_num(cbf['fidelity'][f'lag_ms_{stage}'], '.0f') for stage in LAG_STAGES)})",
             f"{_num(cbf['fidelity']['rms_true_free'], '.3f')} / "
             f"{_num(cbf['fidelity']['rms_true_free_latency_floor'], '.3f')}",
             f"{_num(cbf['fidelity']['direction_error_deg_p95'], '.0f')} / "
