@@ -82,7 +82,8 @@ def tracked(angles: Angles, rates: PoseAnglesConfig, safety: SafetyConfig) -> tu
         while frame < len(t) and t[frame] <= now + 1e-9:
             rate = estimate(float(t[frame]), theta[frame], valid[frame], fresh[frame])
             if valid[frame].all():  # an invalid angle holds its target (the stack would hold the person)
-                track.update(theta[frame], rate, float(t[frame]), float(t[frame]), safety.extrapolate_max_s, -none, none)
+                track.update(theta[frame], rate, float(t[frame]), float(t[frame]), safety.extrapolate_max_s, -none, none,
+                             safety.target_path)
             frame += 1
         target, target_rate = track.at(float(now))
         u = (target_rate if safety.feedforward else 0.0) + safety.gain * (target - q)

@@ -24,7 +24,7 @@ from services.perception.synthetic import skeleton
 from services.safety.retarget import Retargeter
 from services.safety.service import RESYNC_DONE, RESYNC_TOLERANCE, SafetyService
 from shared.bus import Bus
-from shared.config import BusConfig, load_config
+from shared.config import BusConfig, TargetPath, load_config
 from shared.messages import ConfigUpdate, HumanState, JointState, SafetyMode
 from shared.names import CAPSULE_NAMES, KEYPOINT_NAMES, POSE_ANGLE_NAMES
 from shared.realtime import enter_realtime, leave_realtime
@@ -486,6 +486,42 @@ def test_between_frames_q_nom_is_extrapolated_one_frame_and_its_rate_fed_forward
     result = service.tick(received + service.conf.safety.human_timeout_s + 0.1)  # stale: hold q_cbf
     assert service._human_stale
     assert_brakes_to_rest(service, u_before, result.u)
+
+
+def test_a_continuous_target_path_applies_in_place_and_never_jumps_at_a_new_frame(service: SafetyService) -> None:
+    """``safety.target_path: continuous`` (a hot field: the same pipeline): at a new frame q_nom starts
+    where it was and moves straight to the new state extrapolated one frame ahead, and that path's
+    velocity v is fed forward, u_ref = v + K (q_nom − q_cbf)."""
+    pipeline = service.pipeline
+    full = load_config(environ={}, overrides={"retargeting": {"method": "linear"},
+                                              "safety": {"target_path": "continuous"}}).model_dump(mode="json")
+    service.on_config(ConfigUpdate(stamp=0.0, version=2, config=full))
+    service.tick()
+    assert service.pipeline is pipeline and service.conf.safety.target_path is TargetPath.CONTINUOUS
+    first = human_state(arm_forward() * 0.4, person(2.0)[1])
+    rate = np.zeros(8)
+    rate[LEFT_SHOULDER_PITCH] = 2.0
+    frame = 1 / 30
+    second = human_state(arm_forward() * 0.6, person(2.0)[1]).model_copy(
+        update={"stamp": first.stamp + frame, "seq": 1, "theta_rate": rate})
+    service.human.set(first)
+    service.tick(service.human.get().received + 0.001)
+    start = service._q_nom.copy()  # the first state: held, no path to it
+    service.human.set(second)
+    received = service.human.get().received
+    r = service.pipeline.retargeter
+    service.tick(received)  # applies the second state
+    end = np.clip(service._q_nom + r.scale * rate * frame, r.q_min, r.q_max)
+    assert np.abs(end - start).max() > 0.05  # the new frame is elsewhere: a jumping q_nom would jump there
+    v = (end - start) / frame
+    gain = service.conf.safety.gain
+    for tau in (0.0005, 0.01, 0.02):
+        q_before = service.pipeline.filter.q_cbf.copy()
+        result = service.tick(received + tau)
+        np.testing.assert_allclose(result.u_ref, v + gain * (start + v * tau - q_before), atol=1e-9)
+    q_before = service.pipeline.filter.q_cbf.copy()
+    result = service.tick(received + 0.2)  # after the frame: at its end, at rest
+    np.testing.assert_allclose(result.u_ref, gain * (end - q_before), atol=1e-9)
 
 
 def test_vanished_person_is_held_and_stops_imitating_until_forgotten(service: SafetyService) -> None:

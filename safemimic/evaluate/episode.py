@@ -185,7 +185,7 @@ def run_episode(
     timeout, hold = conf.safety.human_timeout_s, conf.safety.lost_human_hold_s
     memory = HumanMemory()
     nominal = NominalTrack(safety.filter.q_cbf.copy())  # no human yet: hold
-    feedforward, horizon = conf.safety.feedforward, conf.safety.extrapolate_max_s
+    feedforward, horizon, path = conf.safety.feedforward, conf.safety.extrapolate_max_s, conf.safety.target_path
     newest, applied, stale = -1, -1, False
     executor.start()
     for k, t in enumerate(ep.t):
@@ -202,7 +202,7 @@ def run_episode(
                     seen.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity, stale=now_stale))
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     r = safety.retargeter
-                    nominal.update(*r.track(state), state.stamp, human.t[newest], horizon, r.q_min, r.q_max)
+                    nominal.update(*r.track(state), state.stamp, human.t[newest], horizon, r.q_min, r.q_max, path)
                 if newest != applied:
                     sim.set_human(state.capsules, state.capsule_radii, state.capsule_valid, PERCEIVED_PERSON)
                 applied, stale = newest, now_stale

@@ -12,8 +12,9 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    never in a jump;
 3. the newest :class:`~shared.messages.HumanState`: its capsules become the barrier's external
    capsules (held until the next one) and θ is retargeted to q_nom, θ̇ to q̇_nom (S ⊙ θ̇, 0 where
-   clipped or invalid); between camera frames q_nom is extrapolated by q̇_nom for at most one frame
-   period (:mod:`services.safety.nominal`), and q̇_nom is fed forward (``safety.feedforward``,
+   clipped or invalid); between camera frames q_nom moves towards the newest state extrapolated by
+   q̇_nom one frame period ahead (:mod:`services.safety.nominal`, ``safety.target_path``), and that
+   path's velocity is fed forward (``safety.feedforward``,
    u_ref = q̇_nom + K (q_nom − q_cbf)). No human yet: no external capsules,
    q_nom = q_cbf (hold). A capsule that turns invalid is held from memory for
    ``safety.lost_human_hold_s`` (:class:`~services.safety.human_memory.HumanMemory`).
@@ -101,7 +102,7 @@ _MAX_CONSECUTIVE_ERRORS = 100
 _HOT_SAFETY_FIELDS = frozenset(f.name for f in dataclasses.fields(FilterParams)) | {
     "rate_hz", "status_rate_hz", "human_timeout_s", "human_velocity_term", "lost_human_hold_s",
     "human_predict_s",
-    "feedforward", "extrapolate_max_s",
+    "feedforward", "extrapolate_max_s", "target_path",
 }
 
 
@@ -363,7 +364,7 @@ class SafetyService(ScheduledService):
             retargeter = self.pipeline.retargeter
             self._q_nom, dq_nom = retargeter.track(message)
             self._nominal.update(self._q_nom, dq_nom, message.stamp, received.received,
-                                 safety.extrapolate_max_s, retargeter.q_min, retargeter.q_max)
+                                 safety.extrapolate_max_s, retargeter.q_min, retargeter.q_max, safety.target_path)
         self._human_used, self._human_stale, self._human_dirty = received, stale, False
         self.watchdogs.watch("human_lost", self._memory.lost, f"held: {', '.join(self._memory.lost_capsules)}")
         return received
