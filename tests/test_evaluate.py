@@ -57,7 +57,7 @@ def test_paper_scenarios_violate_without_and_are_safe_with_the_cbf(scenario: str
     assert metrics["input"]["robot_model"] == ("g1.xml" if model == "real_g1" else "default")
 
 
-def _reach_fidelity(method: str = "linear", scenario: str = "reach-forward", **safety: object) -> dict:
+def _scripted_fidelity(method: str = "linear", scenario: str = "reach-forward", **safety: object) -> dict:
     """The CBF run's metrics of a scripted ``scenario`` with these retargeting ``method`` and ``safety`` settings."""
     conf = evaluation_config(None, scenario, "auto", None)
     conf = conf.model_copy(update={"safety": conf.safety.model_copy(update=safety),
@@ -75,14 +75,14 @@ def test_fidelity_of_a_scripted_reach_with_feed_forward_and_targets_between_fram
     retargeting itself leaves (the robot exactly at q_true); safe against the truth. Without the
     velocity feed-forward (the paper's eq. 7) or without the targets between frames the robot
     trails by more than 1/K more."""
-    default = _reach_fidelity()
+    default = _scripted_fidelity()
     fidelity = default["fidelity"]
     assert fidelity["rms_true_free"] <= 0.05, fidelity
     assert fidelity["lag_ms"] <= 60.0 + 20.0, fidelity
     assert fidelity["direction_error_deg_p95"] <= fidelity["direction_error_deg_p95_at_target"] + 2.0, fidelity
     assert default["true_min_h_self"] >= -1e-3 and default["true_contacts_robot_human"] == 0, default
     assert default["robot_approach_steps"] == 0 and default["nan_count"] == 0, default
-    for paper_like in (_reach_fidelity(feedforward=False), _reach_fidelity(extrapolate_max_s=0.0)):
+    for paper_like in (_scripted_fidelity(feedforward=False), _scripted_fidelity(extrapolate_max_s=0.0)):
         assert paper_like["fidelity"]["lag_ms"] >= fidelity["lag_ms"] + 80.0, paper_like["fidelity"]
         assert paper_like["fidelity"]["rms_true_free"] >= 1.5 * fidelity["rms_true_free"], paper_like["fidelity"]
 
@@ -92,8 +92,8 @@ def test_a_continuous_target_path_follows_each_frame_within_that_frame() -> None
     to each frame leaves the command 42 ms behind it (K closes each jump in ≈ 1/K); on the continuous
     path (``safety.target_path: continuous``) the command follows q_nom within 4 ms and the whole lag
     falls 142 → 108 ms (measured), as safe against the truth."""
-    jump = _reach_fidelity(scenario="wave", target_path=TargetPath.JUMP)
-    continuous = _reach_fidelity(scenario="wave", target_path=TargetPath.CONTINUOUS)
+    jump = _scripted_fidelity(scenario="wave", target_path=TargetPath.JUMP)
+    continuous = _scripted_fidelity(scenario="wave", target_path=TargetPath.CONTINUOUS)
     assert continuous["fidelity"]["lag_ms_command"] <= jump["fidelity"]["lag_ms_command"] - 25.0, continuous["fidelity"]
     assert continuous["fidelity"]["lag_ms"] <= jump["fidelity"]["lag_ms"] - 20.0, continuous["fidelity"]
     assert continuous["fidelity"]["rms_true_free"] <= jump["fidelity"]["rms_true_free"], continuous["fidelity"]
@@ -106,7 +106,7 @@ def test_the_retargeting_by_directions_points_the_arms_where_the_person_does() -
     q_true) p50 / p95 15.1 / 24.1° with the paper's map, 4.9 / 16.6° by directions (measured); the
     controller adds < 2° to it, it tracks as well (rms_true_free ≤ 0.05 rad) and stays safe against
     the truth."""
-    linear, directions = _reach_fidelity("linear")["fidelity"], _reach_fidelity("directions")
+    linear, directions = _scripted_fidelity("linear")["fidelity"], _scripted_fidelity("directions")
     fidelity = directions["fidelity"]
     assert fidelity["direction_error_deg_p50_at_target"] <= 0.5 * linear["direction_error_deg_p50_at_target"], fidelity
     assert fidelity["direction_error_deg_p95_at_target"] <= 0.75 * linear["direction_error_deg_p95_at_target"], fidelity

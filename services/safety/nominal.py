@@ -95,9 +95,8 @@ class NominalTrack:
         if path == TargetPath.JUMP or horizon <= 0.0:
             self.current = Nominal(q, dq, since, horizon, q_min, q_max)
             return self.current
-        end = np.minimum(np.maximum(q + dq * horizon, q_min), q_max)
-        start = cur.q if again else cur.at(since)[0]
-        start = np.minimum(np.maximum(start, q_min), q_max)
+        end = np.clip(q + dq * horizon, q_min, q_max)
+        start = np.clip(cur.q if again else cur.at(since)[0], q_min, q_max)
         self.current = Nominal(start, (end - start) / horizon, since, horizon, q_min, q_max)
         return self.current
 
