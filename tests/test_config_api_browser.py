@@ -172,6 +172,34 @@ def test_person_prediction_and_intrusion_response_in_the_form(page, console: Api
     assert (restored["human_predict_s"], restored["on_intrusion"]) == (safety["human_predict_s"], "stop")
 
 
+def test_feed_forward_and_target_path_in_the_form(page, console: ApiServer, bus: Bus) -> None:  # noqa: F811
+    """Issue 17's imitation switches: the form shows the configured ones, sends only what was edited."""
+    safety = console.http.get("/api/config").json()["safety"]
+    form = "#safety-form "
+    assert page.locator(form + "input[name=feedforward]").is_checked() is safety["feedforward"] is True
+    assert page.locator(form + "select[name=target_path]").input_value() == safety["target_path"] == "jump"
+
+    page.fill("#token", TOKEN)
+    with FakeSafety(bus):
+        page.uncheck(form + "input[name=feedforward]")
+        page.select_option(form + "select[name=target_path]", "continuous")
+        page.click("#apply-safety")
+        sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
+    after = console.http.get("/api/config").json()
+    assert (after["safety"]["feedforward"], after["safety"]["target_path"]) == (False, "continuous")
+    assert (after["config"]["safety"]["feedforward"], after["config"]["safety"]["target_path"]) == (False, "continuous")
+    changed = str(console.http.get("/api/config/history").json()["entries"][0])
+    assert "safety.feedforward" in changed and "safety.target_path" in changed and "safety.gamma" not in changed
+
+    with FakeSafety(bus):  # back to the defaults, from the form
+        page.check(form + "input[name=feedforward]")
+        page.select_option(form + "select[name=target_path]", "jump")
+        page.click("#apply-safety")
+        sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
+    restored = console.http.get("/api/config").json()["safety"]
+    assert (restored["feedforward"], restored["target_path"]) == (True, "jump")
+
+
 def test_calibrate_button(page, console: ApiServer, bus: Bus) -> None:  # noqa: F811
     page.fill("#token", TOKEN)
     theta = [0.0, 0.05, 0.1, 0.0, 0.3, 0.1, 0.0, 0.3]

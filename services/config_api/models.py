@@ -31,6 +31,7 @@ from shared.config import (
     RetargetingConfig,
     SafetyConfig,
     StackConfig,
+    TargetPath,
 )
 from shared.messages import HumanState, SafetyMode, SafetyStatus
 from shared.names import CAPSULE_NAMES, IMITATION_JOINT_NAMES
@@ -96,6 +97,8 @@ SAFETY_FIELDS: dict[str, str] = {
     "geometry": "safety.geometry",
     "sphere_k": "safety.sphere_k",
     "on_intrusion": "safety.on_intrusion",
+    "feedforward": "safety.feedforward",
+    "target_path": "safety.target_path",
 }
 #: PATCH /api/config/retarget field → configuration field (dotted path).
 RETARGET_FIELDS: dict[str, str] = {
@@ -108,7 +111,7 @@ RETARGET_FIELDS: dict[str, str] = {
 }
 #: Safety request fields whose value goes into the configuration unchanged.
 _DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_predict_s",
-                  "human_velocity_term",
+                  "human_velocity_term", "feedforward",
                   "sphere_k"}
 #: Configuration field → request field, to name the request's field in errors found on the whole config.
 REQUEST_FIELD: dict[str, str] = {path: name for name, path in (SAFETY_FIELDS | RETARGET_FIELDS).items()}
@@ -185,6 +188,13 @@ class SafetyPatch(_Patch):
     sphere_k: Annotated[_like(SafetyConfig, "sphere_k"), BeforeValidator(_whole_number)] = Field(
         None, description="spheres: levels of subsampling k"
     )
+    feedforward: StrictBool = Field(
+        None, description="u_ref = q̇_nom + K (q_nom − q_cbf), the target's own velocity fed forward; false: the paper's eq. 7"
+    )
+    target_path: TargetPath = Field(
+        None, description="q_nom between camera frames: jump (to each new state, then extrapolated by its rate) | continuous "
+        "(no jump: from where it was to the newest state one frame ahead; for clean skeletons, it follows a camera's jitter)"
+    )
 
     def changes(self, current: StackConfig) -> dict[str, Any]:
         """The configuration fields this patch sets on ``current`` (dotted path → new value)."""
@@ -196,6 +206,8 @@ class SafetyPatch(_Patch):
             values[SAFETY_FIELDS["geometry"]] = self.geometry.value
         if "on_intrusion" in given:
             values[SAFETY_FIELDS["on_intrusion"]] = self.on_intrusion.value
+        if "target_path" in given:
+            values[SAFETY_FIELDS["target_path"]] = self.target_path.value
         if "enabled_pair_groups" in given:
             values[SAFETY_FIELDS["enabled_pair_groups"]] = [g.value for g in PairGroup if g in self.enabled_pair_groups]
         radii = self.capsule_radii
@@ -264,6 +276,8 @@ class SafetyParams(_View):
     geometry: GeometryName
     sphere_k: int
     on_intrusion: IntrusionResponse
+    feedforward: bool
+    target_path: TargetPath
 
     @classmethod
     def from_config(cls, conf: StackConfig) -> SafetyParams:
@@ -280,6 +294,8 @@ class SafetyParams(_View):
             geometry=s.geometry,
             sphere_k=s.sphere_k,
             on_intrusion=s.on_intrusion,
+            feedforward=s.feedforward,
+            target_path=s.target_path,
         )
 
 

@@ -85,6 +85,8 @@ function fillForms() {
   for (const name of SAFETY_NUMBERS) sf.elements[name].value = s[name];
   sf.elements.human_velocity_term.checked = s.human_velocity_term;
   sf.elements.on_intrusion.value = s.on_intrusion;
+  sf.elements.feedforward.checked = s.feedforward;
+  sf.elements.target_path.value = s.target_path;
 
   const groups = $("pair-groups");
   groups.querySelectorAll("label").forEach((l) => l.remove());
@@ -149,6 +151,8 @@ function safetyPatch() {
   }
   if (f.elements.human_velocity_term.checked !== s.human_velocity_term) patch.human_velocity_term = f.elements.human_velocity_term.checked;
   if (f.elements.on_intrusion.value !== s.on_intrusion) patch.on_intrusion = f.elements.on_intrusion.value;
+  if (f.elements.feedforward.checked !== s.feedforward) patch.feedforward = f.elements.feedforward.checked;
+  if (f.elements.target_path.value !== s.target_path) patch.target_path = f.elements.target_path.value;
   for (const name of ["w", "u_min", "u_max", "accel_max"]) {
     const value = readVector(f, name);
     if (!same(value, s[name])) patch[name] = value;
