@@ -113,6 +113,8 @@ RETARGET_FIELDS: dict[str, str] = {
 _DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_predict_s",
                   "human_velocity_term", "feedforward",
                   "sphere_k"}
+#: Safety request fields that are a choice (an enum): the configuration takes the choice's value.
+_CHOICE_SAFETY = {"geometry", "on_intrusion", "target_path"}
 #: Configuration field → request field, to name the request's field in errors found on the whole config.
 REQUEST_FIELD: dict[str, str] = {path: name for name, path in (SAFETY_FIELDS | RETARGET_FIELDS).items()}
 
@@ -202,12 +204,7 @@ class SafetyPatch(_Patch):
         values = {SAFETY_FIELDS[name]: getattr(self, name) for name in given & _DIRECT_SAFETY}
         if "dt" in given:
             values[SAFETY_FIELDS["dt"]] = 1.0 / self.dt
-        if "geometry" in given:
-            values[SAFETY_FIELDS["geometry"]] = self.geometry.value
-        if "on_intrusion" in given:
-            values[SAFETY_FIELDS["on_intrusion"]] = self.on_intrusion.value
-        if "target_path" in given:
-            values[SAFETY_FIELDS["target_path"]] = self.target_path.value
+        values |= {SAFETY_FIELDS[name]: getattr(self, name).value for name in given & _CHOICE_SAFETY}
         if "enabled_pair_groups" in given:
             values[SAFETY_FIELDS["enabled_pair_groups"]] = [g.value for g in PairGroup if g in self.enabled_pair_groups]
         radii = self.capsule_radii
