@@ -23,14 +23,15 @@ same stamp, are never extrapolated further than before) — and, by ``safety.tar
   later, arriving exactly when the next frame is due, and q̇_nom, fed forward, is the velocity of
   that very path, so the surprise is followed within one frame. Measured (README "Velocity
   feed-forward and targets between frames"): on clean skeletons (the motion-capture development
-  set) the median lag 129.5 → 110 ms at the same safety; with a noisy camera the robot follows the
-  jitter too (lag 156 → 172 ms, robot-caused contact steps 22 → 123), hence not the default.
+  set) the median lag 129.5 → 110 ms with its safety goals still met (on the test variants
+  robot-caused contact steps 174 → 207); with a noisy camera the robot follows the jitter too (lag
+  156 → 172 ms, robot-caused contact steps 22 → 123), hence not the default.
 
 Either way q_nom never runs more than one frame ahead of the newest state (it ends at q_end, the
 newest state extrapolated by one frame period), never leaves the joint limits (continuous: both
-ends of the straight path lie within them), and stops (holds, q̇_nom = 0) after that frame, on a joint whose
-angle is invalid (its rate is 0: the path ends at the state's own angle) and at a limit. A stale or
-lost person is the caller's business: it then holds q_cbf.
+ends of the straight path lie within them), and stops (holds, q̇_nom = 0) after that frame, on a
+joint whose angle is invalid (its rate is 0: the path ends at the state's own angle) and at a
+limit. A stale or lost person is the caller's business: it then holds q_cbf.
 
 Used by the safety service and the offline evaluator alike (one implementation).
 """
