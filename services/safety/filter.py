@@ -70,9 +70,10 @@ robot than the hair at q_cbf:
    variants 174 → 12, none on the development set either way; but a robot that never dodges is
    walked and swung into (+17 % contact steps on the variants), in the paper's side-by-side arm
    raise the person's arm sweeping past meets the still robot (680 contact steps instead of 0),
-   and with a noisy camera robot-caused steps rise 22 → 166, so it is not the default. The imitation target is then typically
-   radians away (the person blocks it), so u_ref = q̇_nom + K (q_nom − q_cbf) asks for the velocity
-   bounds (15–20 rad/s on the sword clip facing the robot), and the freedom the rows leave
+   and with a noisy camera robot-caused steps rise 22 → 166, so it is not the default. The
+   imitation target is then typically radians away (the person blocks it), so
+   u_ref = q̇_nom + K (q_nom − q_cbf) asks for the velocity bounds (15–20 rad/s on the sword clip
+   facing the robot), and the freedom the rows leave
    (directions tangential to the perceived capsules, the other arm) was spent sweeping the robot's
    links at full speed past a person standing inside its reach, known only as they were 60 ms
    earlier: in 511 of that run's 646 robot-caused contact steps the perceived row of the touching
