@@ -17,8 +17,10 @@ from scipy.optimize import linprog
 
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
-from services.safety.filter import RELAXED_TOL, movable_rows
+from services.safety.filter import movable_rows
 from services.safety.human_memory import padded, swept_capsules
+from services.safety.qp import QPProblem
+from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
 from tests.support.pipelines import DT, alone_at, pipeline_for
@@ -73,6 +75,38 @@ def least_violation(A, b, soft, lower, upper, relax_penalty: float) -> float:
                      bounds=[*zip(lower, upper), *((0.0, max(v, 0.0)) for v in b)], method="highs")
     assert result.status == 0, result.message
     return float(result.fun)
+
+
+def test_the_lexicographic_solve_is_feasible_and_least_violating_on_random_row_sets() -> None:
+    """:class:`LexicographicSolver` alone, on random rows no u satisfies together (hard rows that
+    hold at 0, soft rows demanding more than the velocity box gives): the feasibility argument of
+    its docstring (the box holds 0, so u = 0 with σ = max(b, 0) is a solution) means it always
+    returns a finite u within the box; the hard rows hold, no soft row falls below min(b_i, 0), the
+    slacks cover exactly what u leaves, and their sum is SciPy's least violation (the tracking stage
+    never trades violation for tracking)."""
+    rng = np.random.default_rng(35)
+    solver, penalty = LexicographicSolver(), 100.0
+    gave = 0
+    for _ in range(60):
+        n, m = 8, int(rng.integers(4, 20))
+        A = rng.normal(size=(m, n))
+        soft = rng.random(m) < 0.5
+        b = np.where(soft, rng.uniform(-1.0, 40.0, m), -rng.uniform(0.0, 2.0, m))  # hard rows hold at u = 0
+        upper = rng.uniform(0.5, 3.0, n)
+        lower = -rng.uniform(0.5, 3.0, n)
+        problem = QPProblem(w=np.ones(n), u_ref=rng.uniform(-5.0, 5.0, n), A=A, b=b, lower=lower, upper=upper)
+        result = solver.solve(problem, soft, np.zeros(m), penalty)
+        assert result.u is not None and np.isfinite(result.u).all()
+        u = result.u
+        assert (lower - TOL <= u).all() and (u <= upper + TOL).all()
+        lhs = A @ u
+        assert (lhs[~soft] >= b[~soft] - TOL).all(), "a hard row gave way"
+        assert (lhs[soft] >= np.minimum(b[soft], 0.0) - TOL).all(), "a soft row fell below its floor"
+        assert np.allclose(result.slack, np.maximum(b - lhs, 0.0), atol=1e-5)
+        least = least_violation(A, b, soft, lower, upper, penalty)
+        assert result.slack[soft].sum() == pytest.approx(least, abs=1e-4 * max(1.0, least))
+        gave += result.gave
+    assert gave >= 30, "the random rows must mostly be infeasible together"
 
 
 @pytest.mark.parametrize("backend", ["daqp", "osqp"])

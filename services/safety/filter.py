@@ -36,10 +36,10 @@ feed-forward). After :meth:`SafetyFilter.reset` there is no u_prev and no bound 
 faster than it can retreat), every row i gets a slack σ_i ∈ [0, max(b_i, 0)] (A_i u + σ_i ≥ b_i,
 so A_i u ≥ min(b_i, 0): a soft robot–person row may give way but the robot never closes in on
 that capsule; a hard row whose b_i ≤ 0 keeps σ_i = 0 and stays exactly as it was), and two QPs
-are solved in order (a lexicographic solve). Inside an acceleration bound (below) a robot moving
-toward a person may be unable to stop within one step: there a soft row's floor is the hardest
-braking the box allows, A_i u ≥ min(b_i, 0, A_i ū) with ū the box's point nearest rest (0 when
-the box holds 0): the robot closes in no faster than braking as hard as the bound lets it, the
+are solved in order (a lexicographic solve, :mod:`services.safety.relaxation`). Inside an
+acceleration bound (below) a robot moving toward a person may be unable to stop within one step:
+there a soft row's floor is the hardest braking the box allows, A_i u ≥ min(b_i, 0, A_i ū) with ū
+the box's point nearest rest (0 when the box holds 0): the robot closes in no faster than braking as hard as the bound lets it, the
 most a real robot can do (commanding more only leaves its servos behind). An already violated
 hard row (b_i > 0) gets the same floor: a self pair that sampling has carried a hair past its
 boundary (h ≈ −0.03 mm after a long slide along it) would otherwise demand A_i u ≥ 0 at once, no
@@ -156,6 +156,7 @@ from services.safety.qp.base import INF_BOUND
 from services.safety.qp.box import (
     HIGH, LOW, LOWER, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
 )
+from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
 from shared.config import IntrusionResponse
 from shared.messages import SafetyMode
 
@@ -165,16 +166,8 @@ _STOPS = (IntrusionResponse.STOP.value, IntrusionResponse.STOP_ON_GIVE_WAY.value
 _STOP_ON_GIVE_WAY = IntrusionResponse.STOP_ON_GIVE_WAY.value
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
 VIOLATION_TOL = 1e-3
-#: strict-convexity regularisation of the relaxed stages (weight of ‖σ‖², and of ‖u − u_ref‖² in stage 1)
-_EPS = 1e-4
-#: slack above stage 1's a stage-2 row may take (solver tolerance)
-_SLACK_TOL = 1e-6
-#: DAQP's primal tolerance in the relaxed stages
-RELAXED_PRIMAL_TOL = 1e-6
 #: a row whose largest |A_ij| is below this does not depend on u (a static link's pair)
 _STATIC_ROW = 1e-12
-#: a slack above this (m/s of barrier rate) means its row gave way
-RELAXED_TOL = 1e-6
 #: the acceleration bound's factors, tried in order when no u within it satisfies the rows
 ACCEL_WIDENING = (1.0, 2.0, 4.0, 8.0, 16.0)
 #: the name :attr:`StepResult.gave_way` gives the acceleration bound when it was widened or dropped
@@ -187,13 +180,6 @@ def movable_rows(A: np.ndarray) -> np.ndarray:
     out = np.empty(A.shape[0], bool)
     movable_mask(A, _STATIC_ROW, out)
     return out
-
-
-def intrudes(slack: np.ndarray, soft: np.ndarray) -> bool:
-    """Whether a soft (robot–person) row gave way: its ``slack`` (m,) above :data:`RELAXED_TOL`
-    (``soft`` (m,) bool). Then the relaxed step's tracking stage aims at rest, not at u_ref (the
-    protective stop of the module docstring)."""
-    return bool((slack[soft] > RELAXED_TOL).any())
 
 
 def binding_rows(rows: BarrierRows, u: np.ndarray) -> np.ndarray:
@@ -335,13 +321,7 @@ class SafetyFilter:
         self.params = params
         self.backend_name = backend
         self._qp: QPBackend = make_backend(backend)
-        # the relaxed stages are small, LP-like and badly scaled (costs up to relax_penalty against
-        # ε-regularisation): an active-set solver (DAQP) solves them exactly whatever the backend;
-        # its primal tolerance is loosened to 1e-6 (m/s of
-        # barrier rate) there: near-static rows (|A_i| ~ 1e-4) pin σ_i at its cap, and at 1e-9 DAQP
-        # declared such feasible problems infeasible (44 steps of one development clip)
-        self._relaxed_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
-        self._tracking_qp: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
+        self._relaxation = LexicographicSolver()  # DAQP whatever the backend (services.safety.relaxation)
         self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
 
     @property
@@ -563,68 +543,19 @@ class SafetyFilter:
         """The relaxed solve (module docstring): (u or None, slacks (m,), seconds, whether it is the
         protective stop).
 
-        :meth:`_lexicographic` on ``problem``; when a soft (robot–person) row gives way there and
-        ``on_intrusion`` is "stop_on_give_way", the protective stop: the same solve again with every
+        :class:`~services.safety.relaxation.LexicographicSolver` on ``problem``; when a soft
+        (robot–person) row gives way there and ``on_intrusion`` is "stop_on_give_way", the protective stop: the same solve again with every
         soft row at its floor, b_i ← min(b_i, 0) (never closer, no retreat demanded), aiming at ū,
         the box's point nearest rest. The slacks are the first solve's: the person rows that could
         not be honoured as asked (reported as given way). Only soft rows' b is lowered, so the
         feasibility argument holds unchanged; if the stop's solve fails numerically the first
         solve's u is used.
         """
-        u, slack, seconds, gave = self._lexicographic(problem, soft, margin)
-        if u is None or not gave or self.params.on_intrusion != _STOP_ON_GIVE_WAY:
-            return u, slack, seconds, False
+        penalty = self.params.relax_penalty
+        first = self._relaxation.solve(problem, soft, margin, penalty)
+        if first.u is None or not first.gave or self.params.on_intrusion != _STOP_ON_GIVE_WAY:
+            return first.u, first.slack, first.seconds, False
         floored = problem.b.copy()
         np.minimum(floored, 0.0, out=floored, where=soft)
-        stop_u, _, spent, _ = self._lexicographic(dataclasses.replace(problem, b=floored), soft, margin, rest=True)
-        return (u if stop_u is None else stop_u), slack, seconds + spent, stop_u is not None
-
-    def _lexicographic(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray,
-                       rest: bool = False) -> tuple[np.ndarray | None, np.ndarray, float, bool]:
-        """The lexicographic relaxed solve (module docstring): (u or None, slacks (m,), seconds,
-        whether a soft row gave way (:func:`intrudes`)).
-
-        With b⁰ = b − ``margin`` (m,) (the row's own bound without the self margin), row i may fall to
-        its floor f_i = min(b⁰_i, 0) (a soft row or a violated one, b⁰_i > 0: min(b⁰_i, 0, A_i ū), ū
-        the box's point nearest rest): σ_i ∈ [0, b_i − f_i]. Only rows with b_i > f_i get a slack
-        variable: a hard row that holds even with its margin (b_i ≤ 0) has none, one inside its
-        margin only the margin's. Stage 2 tracks ``problem.u_ref``, or ū when a soft row gave way
-        in stage 1 (:func:`intrudes`); with ``rest`` both stages aim at ū instead of u_ref.
-        """
-        n, m = problem.n, problem.m
-        own = problem.b - margin
-        floor = np.minimum(own, 0.0)
-        brake = np.clip(0.0, problem.lower, problem.upper)  # the box's point nearest rest: 0 in a velocity box
-        reference = brake if rest else problem.u_ref
-        give = soft | (own > 0.0)
-        floor[give] = np.minimum(floor[give], problem.A[give] @ brake)
-        slack_cap = problem.b - floor
-        loose = np.flatnonzero(slack_cap > 0.0)
-        k = len(loose)
-        cap = slack_cap[loose]  # σ ∈ [0, b − f] on the rows that may give way
-        cost = np.where(soft[loose], 1.0, self.params.relax_penalty)
-        columns = np.zeros((m, k))
-        columns[loose, np.arange(k)] = 1.0
-        A = np.hstack([problem.A, columns])
-        lower = np.concatenate([problem.lower, np.zeros(k)])
-        # stage 1: min Σ c σ + ½ε‖u − u_ref‖²_W + ½ε‖σ‖²  (the linear term as ½ε‖σ + c/ε‖²)
-        least = QPProblem(w=np.concatenate([_EPS * problem.w, np.full(k, _EPS)]),
-                          u_ref=np.concatenate([reference, -cost / _EPS]), A=A, b=problem.b,
-                          lower=lower, upper=np.concatenate([problem.upper, cap]))
-        first = self._relaxed_qp.solve(least)
-        slack = np.zeros(m)
-        if first.u is None:
-            return None, slack, first.solve_time_s, False
-        sigma = np.clip(first.u[n:], 0.0, cap)
-        # stage 2: min ½‖u − target‖²_W + ½ε‖σ‖²  with σ ≤ σ* (stage 1's solution is feasible here);
-        # target = u_ref, or ū while a person row gives way (the protective stop, module docstring)
-        gave = intrudes(sigma, soft[loose])
-        target = brake if gave else reference
-        tracking = QPProblem(w=np.concatenate([problem.w, np.full(k, _EPS)]),
-                             u_ref=np.concatenate([target, np.zeros(k)]), A=A, b=problem.b,
-                             lower=lower, upper=np.concatenate([problem.upper, np.minimum(sigma + _SLACK_TOL, cap)]))
-        second = self._tracking_qp.solve(tracking)
-        seconds = first.solve_time_s + second.solve_time_s
-        best = second if second.u is not None else first
-        slack[loose] = np.clip(best.u[n:], 0.0, cap)
-        return best.u[:n], slack, seconds, gave
+        stop = self._relaxation.solve(dataclasses.replace(problem, b=floored), soft, margin, penalty, rest=True)
+        return (first.u if stop.u is None else stop.u), first.slack, first.seconds + stop.seconds, stop.u is not None
