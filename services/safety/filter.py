@@ -126,8 +126,8 @@ In particular the hard rows (self pairs, joint barriers) whose b_i ≤ 0 at the 
 (they hold: h ≥ 0 ⇔ b = −γ h ≤ 0) are never relaxed; a violated one (b_i > 0, which the hard
 rows prevent from happening) is softened the same way at cost ``relax_penalty``.
 
-Both stages are solved by DAQP whatever ``safety.backend`` is (an active-set solver is exact on
-these small LP-like problems; OSQP's first-order iterations stall on their scaling). If both
+Both stages are solved by DAQP whatever ``safety.backend`` is (why: :mod:`services.safety.relaxation`,
+whose docstring states the floors and the stages exactly). If both
 stages fail numerically the filter holds (u* = 0, mode HOLD: q_cbf does not move, no jump);
 if only stage 2 fails, stage 1's u is commanded. The mode says which happened; the output is
 always finite. A state already inside a barrier (h < −1 mm) is reported as RELAXED too.
