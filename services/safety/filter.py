@@ -39,8 +39,9 @@ that capsule; a hard row whose b_i ≤ 0 keeps σ_i = 0 and stays exactly as it 
 are solved in order (a lexicographic solve, :mod:`services.safety.relaxation`). Inside an
 acceleration bound (below) a robot moving toward a person may be unable to stop within one step:
 there a soft row's floor is the hardest braking the box allows, A_i u ≥ min(b_i, 0, A_i ū) with ū
-the box's point nearest rest (0 when the box holds 0): the robot closes in no faster than braking as hard as the bound lets it, the
-most a real robot can do (commanding more only leaves its servos behind). An already violated
+the box's point nearest rest (0 when the box holds 0): the robot closes in no faster than braking
+as hard as the bound lets it, the most a real robot can do (commanding more only leaves its servos
+behind). An already violated
 hard row (b_i > 0) gets the same floor: a self pair that sampling has carried a hair past its
 boundary (h ≈ −0.03 mm after a long slide along it) would otherwise demand A_i u ≥ 0 at once, no
 acceleration-bounded box could give it while the arm still moves along, and the bound would be
@@ -73,8 +74,8 @@ robot than the hair at q_cbf:
    and with a noisy camera robot-caused steps rise 22 → 166, so it is not the default. The
    imitation target is then typically radians away (the person blocks it), so
    u_ref = q̇_nom + K (q_nom − q_cbf) asks for the velocity bounds (15–20 rad/s on the sword clip
-   facing the robot), and the freedom the rows leave
-   (directions tangential to the perceived capsules, the other arm) was spent sweeping the robot's
+   facing the robot), and the freedom the rows leave (directions tangential to the perceived
+   capsules, the other arm) was spent sweeping the robot's
    links at full speed past a person standing inside its reach, known only as they were 60 ms
    earlier: in 511 of that run's 646 robot-caused contact steps the perceived row of the touching
    link did not close, a rotating link's other surface points or the true capsule did. Only stage
@@ -126,8 +127,8 @@ In particular the hard rows (self pairs, joint barriers) whose b_i ≤ 0 at the 
 (they hold: h ≥ 0 ⇔ b = −γ h ≤ 0) are never relaxed; a violated one (b_i > 0, which the hard
 rows prevent from happening) is softened the same way at cost ``relax_penalty``.
 
-Both stages are solved by DAQP whatever ``safety.backend`` is (why: :mod:`services.safety.relaxation`,
-whose docstring states the floors and the stages exactly). If both
+Both stages are solved by DAQP whatever ``safety.backend`` is (why:
+:mod:`services.safety.relaxation`, whose docstring states the floors and the stages exactly). If both
 stages fail numerically the filter holds (u* = 0, mode HOLD: q_cbf does not move, no jump);
 if only stage 2 fails, stage 1's u is commanded. The mode says which happened; the output is
 always finite. A state already inside a barrier (h < −1 mm) is reported as RELAXED too.
@@ -544,12 +545,12 @@ class SafetyFilter:
         protective stop).
 
         :class:`~services.safety.relaxation.LexicographicSolver` on ``problem``; when a soft
-        (robot–person) row gives way there and ``on_intrusion`` is "stop_on_give_way", the protective stop: the same solve again with every
-        soft row at its floor, b_i ← min(b_i, 0) (never closer, no retreat demanded), aiming at ū,
-        the box's point nearest rest. The slacks are the first solve's: the person rows that could
-        not be honoured as asked (reported as given way). Only soft rows' b is lowered, so the
-        feasibility argument holds unchanged; if the stop's solve fails numerically the first
-        solve's u is used.
+        (robot–person) row gives way there and ``on_intrusion`` is "stop_on_give_way", the
+        protective stop: the same solve again with every soft row at its floor, b_i ← min(b_i, 0)
+        (never closer, no retreat demanded), aiming at ū, the box's point nearest rest. The slacks
+        are the first solve's: the person rows that could not be honoured as asked (reported as
+        given way). Only soft rows' b is lowered, so the feasibility argument holds unchanged; if
+        the stop's solve fails numerically the first solve's u is used.
         """
         penalty = self.params.relax_penalty
         first = self._relaxation.solve(problem, soft, margin, penalty)
