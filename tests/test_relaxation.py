@@ -297,6 +297,55 @@ def test_a_person_inside_a_margin_stops_the_robot_without_a_retreat_on_random_st
     assert not alone.filter.step(alone.kinematics.q_home, DT).protective_stop
 
 
+def test_a_protective_stop_brings_the_command_to_the_robot_twice_on_random_states() -> None:
+    """A protective stop brings q_cbf to the robot's measured joints (the servos' lag, a few mrad,
+    would otherwise carry the robot on into the person after the command stopped) on its first step
+    and on its first step after a command at rest, by at most [u_min, u_max]·Δt per joint and within
+    the joint limits, and on no other step; the step runs from there: its hard rows hold at the
+    settled pose and |Δq_cbf| ≤ 2 u_max Δt. A non-finite robot pose settles nothing; without a stop
+    the robot pose is ignored. Random intrusions on the real model, the robot moving, a robot that
+    trails the command by up to 4 mrad (20 mrad on some joints: beyond u_max Δt)."""
+    p = pipeline_for()
+    params, kin = p.filter.params, p.kinematics
+    lower = -params.u_max if params.u_min is None else params.u_min
+    rng = np.random.default_rng(36)
+    rested = 0
+    for _ in range(20):
+        q = random_intrusion(p, rng)
+        q_nom = rng.uniform(kin.q_min, kin.q_max)
+        lag = rng.uniform(-4e-3, 4e-3, q.shape) * np.where(rng.random(q.shape) < 0.2, 5.0, 1.0)
+        p.filter.reset(q)
+        p.filter._u_prev = 0.5 * rng.uniform(-params.u_max, params.u_max)  # noqa: SLF001 (moving)
+        settled_at, rest_at, u_before = [], None, None
+        for k in range(round(0.5 / DT)):
+            q_robot = q + lag
+            start = np.clip(np.clip(q_robot, q + lower * DT, q + params.u_max * DT), kin.q_min, kin.q_max)
+            result = p.filter.step(q_nom, DT, np.zeros_like(q_nom), q_robot)
+            if not result.protective_stop:  # the robot braked out of the person's margin: the stop is over
+                break
+            assert result.mode is not SafetyMode.HOLD and (np.abs(result.q_cbf - q) <= 2 * params.u_max * DT + 1e-12).all()
+            if rest_at is None and u_before is not None and np.abs(u_before).max() <= 1e-9:
+                rest_at = k
+            if not np.allclose(result.q_cbf, np.clip(q + DT * result.u, kin.q_min, kin.q_max), rtol=0.0, atol=1e-12):
+                settled_at.append(k)
+                np.testing.assert_allclose(result.q_cbf, np.clip(start + DT * result.u, kin.q_min, kin.q_max), atol=1e-12)
+                A, b, soft = stacked(p, start)
+                assert (A[~soft] @ result.u >= b[~soft] - TOL).all(), "a hard row at the settled pose gave way"
+            q, u_before = result.q_cbf, result.u
+        assert settled_at == [0] + ([] if rest_at is None else [rest_at]), (settled_at, rest_at)
+        rested += rest_at is not None
+        p.filter.reset(q)
+        unknown = p.filter.step(q_nom, DT, np.zeros_like(q_nom), np.full_like(q, np.nan))
+        assert unknown.protective_stop
+        np.testing.assert_allclose(unknown.q_cbf, np.clip(q + DT * unknown.u, kin.q_min, kin.q_max), atol=1e-12)
+    assert rested >= 10, "the stops must come to rest"
+    alone = pipeline_for()
+    alone_at(alone, kin.q_home)
+    free = alone.filter.step(kin.q_home, DT, None, kin.q_home + 3e-3)
+    assert not free.protective_stop
+    np.testing.assert_allclose(free.q_cbf, kin.q_home + DT * free.u, atol=1e-12)
+
+
 def person_rushing_in(p, rng: np.random.Generator, q: np.ndarray, *others) -> bool:
     """At ``q``: one person capsule (the torso's slot) 1–6 cm outside the left forearm's margin, rushing
     at it at 4–8 m/s (faster than any retreat: its row asks for more than the velocity box gives),

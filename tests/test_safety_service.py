@@ -425,6 +425,45 @@ def test_first_joint_state_syncs_to_the_executor_target_and_a_displaced_robot_is
     assert service.counters()["watchdog_trips"] == {"resync": 1}
 
 
+def test_a_protective_stop_begins_where_the_measured_robot_is(service: SafetyService) -> None:
+    """As a protective stop begins (a person's torso through the robot's left forearm), the command
+    is first brought to the robot: the newest JointState's q extrapolated by its dq over the time
+    since it arrived, by at most u_max·Δt per joint; once more on the stop's first tick after a
+    command at rest, never again in that stop; without a stop a robot a few mrad off q_cbf is left
+    to the servos."""
+    filt, period = service.pipeline.filter, service.period
+    step_limit = np.asarray(service.conf.safety.u_max) * period
+    home = filt.q_cbf.copy()
+    service.joint_state.set(JointState(stamp=0.0, q=home, dq=np.zeros(8)))
+    service.tick()  # the first joint state: q_cbf synchronised
+    service.joint_state.set(JointState(stamp=0.0, q=home + 2e-3, dq=np.zeros(8)))
+    result = service.tick()  # nobody there: no stop, the measured q ignored
+    assert not result.protective_stop
+    np.testing.assert_allclose(result.q_cbf, home + period * result.u, atol=1e-12)
+    q = result.q_cbf
+    capsules = person(2.0)[1]
+    capsules[0] = service.pipeline.kinematics.compute(q)[0][LEFT_FOREARM]
+    service.human.set(human_state(np.zeros(8), capsules))
+    lag = np.array([-3e-3, 2e-3, -1e-3, 4e-3, 0.0, -2e-3, 0.05, -0.05])  # the last two beyond u_max Δt
+    dq = np.linspace(-0.2, 0.2, 8)
+    service.joint_state.set(JointState(stamp=0.0, q=q + lag, dq=dq))
+    arrived = service.joint_state.get().received
+    result = service.tick(arrived + 0.004)
+    assert result.protective_stop
+    robot = np.clip(q + lag + 0.004 * dq, q - step_limit, q + step_limit)
+    np.testing.assert_allclose(result.q_cbf - period * result.u, robot, atol=1e-9)
+    np.testing.assert_array_equal(result.u, 0.0)  # the robot stood still: the command is at rest at once
+    settled = result.q_cbf
+    result = service.tick(arrived + 0.006)  # the stop's first tick after a command at rest: once more
+    assert result.protective_stop
+    robot = np.clip(q + lag + 0.006 * dq, settled - step_limit, settled + step_limit)
+    np.testing.assert_allclose(result.q_cbf - period * result.u, robot, atol=1e-9)
+    settled = result.q_cbf
+    result = service.tick(arrived + 0.008)  # and never again in this stop
+    assert result.protective_stop
+    np.testing.assert_allclose(result.q_cbf, settled + period * result.u, atol=1e-12)
+
+
 def assert_brakes_to_rest(service: SafetyService, u_before: np.ndarray, u: np.ndarray) -> None:
     """No longer imitating (q_nom = q_cbf, so u_ref = 0): the command slows toward rest as fast as the
     acceleration bound allows, u = sign(u_before) max(|u_before| − aΔt, 0), and is at rest after."""

@@ -10,6 +10,9 @@
    sets the barrier's external capsules and q_nom, extrapolated between frames by its rate and that
    rate fed forward as the service does (:mod:`services.safety.nominal`; q_cbf while stale or lost);
 3. one CBF-QP step gives q_cbf and u*, the MuJoCo executor servos to them for one control period;
+   the step knows the robot's joints as the service does, from a JointState sampled every
+   ``executor.state_rate_hz`` period and extrapolated by its velocity (a protective stop brings
+   q_cbf there: :mod:`services.safety.filter`);
 4. the outcome is measured: MuJoCo's robot–robot contacts, robot–human contacts with the true
    person (every robot surface, with the robot's own closing speed at each contact) and with the
    perceived one, and :class:`~safemimic.evaluate.truth.TruthProbe`'s clearances at q_sim.
@@ -21,6 +24,7 @@ a given input.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -187,8 +191,15 @@ def run_episode(
     nominal = NominalTrack(safety.filter.q_cbf.copy())  # no human yet: hold
     feedforward, horizon, path = conf.safety.feedforward, conf.safety.extrapolate_max_s, conf.safety.target_path
     newest, applied, stale = -1, -1, False
+    # the executor's JointState as the service receives it: published on the executor service's schedule
+    # (every state period, keeping its phase), extrapolated by dq·age
+    state_period, next_state = 1.0 / conf.executor.state_rate_hz, -math.inf
     executor.start()
     for k, t in enumerate(ep.t):
+        if t >= next_state:
+            sampled, q_seen, dq_seen = t, sim.q, sim.dq
+            next_state = max(next_state + state_period, t + 0.5 * state_period)
+        q_robot = q_seen + dq_seen * (t - sampled)
         sim.set_human(person.capsules[k], person.radii, person.capsule_valid[k], TRUE_PERSON)
         while newest + 1 < len(human.t) and human.t[newest + 1] <= t + 1e-9:
             newest += 1
@@ -209,9 +220,9 @@ def run_episode(
         q_nom, dq_nom = nominal.at(t)
         h_seen = None if seen is None else seen.h(safety.filter.q_cbf)
         if stale or memory.lost:
-            result = safety.filter.step(safety.filter.q_cbf.copy(), dt)
+            result = safety.filter.step(safety.filter.q_cbf.copy(), dt, q_robot=q_robot)
         else:
-            result = safety.filter.step(q_nom, dt, dq_nom if feedforward else None)
+            result = safety.filter.step(q_nom, dt, dq_nom if feedforward else None, q_robot)
         executor.apply_command(result.q_cbf, result.u, result.ddq)
         executor.tick()
 

@@ -20,7 +20,10 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    ``safety.lost_human_hold_s`` (:class:`~services.safety.human_memory.HumanMemory`).
 4. one CBF-QP step with Δt = the nominal period; the command (q_cbf, u*) is checked finite and
    published on ``robot/command`` (a non-finite one is replaced by the last command, counted).
-   Every command differs from the previous one by at most u_max·Δt per joint;
+   Every command differs from the previous one by at most u_max·Δt per joint, except on the two
+   ticks of a protective stop that first move q_cbf by at most u_max·Δt more onto the robot's
+   measured joints (its first, and its first after the command is at rest; the newest JointState
+   extrapolated by its dq, :meth:`_robot_at`; the filter's module docstring says why);
 5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`, with that tick's q_nom
    and the pairs whose rows bind at its u* (:func:`~services.safety.filter.binding_rows`).
 
@@ -255,7 +258,7 @@ class SafetyService(ScheduledService):
             dq_nom = dq if self.conf.safety.feedforward else None
         else:  # no person, not a current one, or part of one lost: stop imitating, keep avoiding
             q_nom = pipeline.filter.q_cbf.copy()
-        result = pipeline.filter.step(q_nom, self.period, dq_nom)
+        result = pipeline.filter.step(q_nom, self.period, dq_nom, self._robot_at(now))
 
         q, u, ddq, mode = result.q_cbf, result.u, result.ddq, result.mode
         if not (np.isfinite(q).all() and np.isfinite(u).all() and np.isfinite(ddq).all()):  # the filter promises this never happens
@@ -340,6 +343,17 @@ class SafetyService(ScheduledService):
             self.watchdogs.watch("resync", False)
         else:
             self._resync_target = np.clip(message.q, filt.q_min, filt.q_max)
+
+    def _robot_at(self, now: float) -> np.ndarray | None:
+        """The robot's joints at monotonic time ``now`` (rad): the newest JointState's q extrapolated
+        by its dq over the time since it arrived (a state period at most, 5 ms at 200 Hz, while the
+        executor is live); None before the first one or while the ``joint_state`` watchdog is tripped.
+        The filter brings q_cbf there as a protective stop begins and once its command is at rest
+        (:meth:`SafetyFilter.step`)."""
+        received = self._joint_state_seen
+        if received is None or self.watchdogs.tripped("joint_state"):
+            return None
+        return received.message.q + received.message.dq * (now - received.received)
 
     def _update_human(self, now: float) -> Received[HumanState] | None:
         """Put the newest human state into the barrier and q_nom; None while there never was one."""
