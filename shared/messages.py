@@ -184,10 +184,15 @@ class JointCommand(Message):
     ``ddq`` = (u* − u*_prev)/Δt, bounded by ``safety.accel_max`` except where the bound gave way:
     an executor feeds it forward through the robot's inertia (zero: velocity feed-forward only, the
     default for a sender without it). Schema version 2 added it.
+
+    ``settled``: q was first brought to the robot's measured joints this tick (a protective stop
+    settling, :mod:`services.safety.filter`: the command moves to where the robot is), so q may
+    differ from the previous command by u_max·Δt more than the one step's rate limit. Schema
+    version 3 added it.
     """
 
     SCHEMA_NAME: ClassVar[str] = "JointCommand"
-    SCHEMA_VERSION: ClassVar[int] = 2
+    SCHEMA_VERSION: ClassVar[int] = 3
     q: Array(N_JOINTS)
     dq: Array(N_JOINTS)
     ddq: Array(N_JOINTS) = Field(
@@ -196,6 +201,7 @@ class JointCommand(Message):
     mode: SafetyMode = Field(default=SafetyMode.NOMINAL, strict=False)  # the wire carries the value
     human_stamp: float | None = Field(default=None, description="stamp of the HumanState used")
     human_seq: int | None = Field(default=None, ge=0)
+    settled: bool = Field(default=False, description="q first brought to the measured joints this tick")
 
 
 class SafetyStatus(Message):

@@ -105,7 +105,7 @@ def test_executor_follows_holds_and_counts_over_zenoh(spawn, which: str) -> None
 
         # Malformed payloads and a human state in the wrong frame are dropped; the service goes on.
         bus.put_raw("robot/command", b"\xc1 not msgpack")
-        bus.put_raw("robot/command", msgpack.packb({"schema": {"name": "JointCommand", "version": 2},
+        bus.put_raw("robot/command", msgpack.packb({"schema": {"name": "JointCommand", "version": JointCommand.SCHEMA_VERSION},
                                                     "stamp": 0.0, "q": [1.0] * 3, "dq": [0.0] * 8}))
         bus.put_raw("human/state", b"\x00" * 64)
         wrong_frame = human_in_pelvis()

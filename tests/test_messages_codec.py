@@ -349,6 +349,8 @@ def test_defaults_of_optional_fields_are_none() -> None:
     assert decoded.seq == 0 and decoded.source == "" and decoded.frame_id == "robot"
     command = decode(encode(JointCommand(stamp=1.0, q=np.zeros(8), dq=np.zeros(8))))
     assert command.mode is SafetyMode.NOMINAL and command.human_stamp is None and command.human_seq is None
+    assert command.settled is False
+    assert decode(encode(JointCommand(stamp=1.0, q=np.zeros(8), dq=np.zeros(8), settled=True))).settled is True
 
 
 @pytest.mark.parametrize("mode", list(SafetyMode))

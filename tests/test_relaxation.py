@@ -326,7 +326,9 @@ def test_a_protective_stop_brings_the_command_to_the_robot_twice_on_random_state
             assert result.mode is not SafetyMode.HOLD and (np.abs(result.q_cbf - q) <= 2 * params.u_max * DT + 1e-12).all()
             if rest_at is None and u_before is not None and np.abs(u_before).max() <= 1e-9:
                 rest_at = k
-            if not np.allclose(result.q_cbf, np.clip(q + DT * result.u, kin.q_min, kin.q_max), rtol=0.0, atol=1e-12):
+            moved = not np.allclose(result.q_cbf, np.clip(q + DT * result.u, kin.q_min, kin.q_max), rtol=0.0, atol=1e-12)
+            assert result.settled is moved, k  # the step says it was brought to the robot
+            if moved:
                 settled_at.append(k)
                 np.testing.assert_allclose(result.q_cbf, np.clip(start + DT * result.u, kin.q_min, kin.q_max), atol=1e-12)
                 A, b, soft = stacked(p, start)
@@ -336,7 +338,7 @@ def test_a_protective_stop_brings_the_command_to_the_robot_twice_on_random_state
         rested += rest_at is not None
         p.filter.reset(q)
         unknown = p.filter.step(q_nom, DT, np.zeros_like(q_nom), np.full_like(q, np.nan))
-        assert unknown.protective_stop
+        assert unknown.protective_stop and not unknown.settled
         np.testing.assert_allclose(unknown.q_cbf, np.clip(q + DT * unknown.u, kin.q_min, kin.q_max), atol=1e-12)
     assert rested >= 10, "the stops must come to rest"
     alone = pipeline_for()

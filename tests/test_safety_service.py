@@ -449,7 +449,7 @@ def test_a_protective_stop_begins_where_the_measured_robot_is(service: SafetySer
     service.joint_state.set(JointState(stamp=0.0, q=q + lag, dq=dq))
     arrived = service.joint_state.get().received
     result = service.tick(arrived + 0.004)
-    assert result.protective_stop
+    assert result.protective_stop and result.settled
     robot = np.clip(q + lag + 0.004 * dq, q - step_limit, q + step_limit)
     np.testing.assert_allclose(result.q_cbf - period * result.u, robot, atol=1e-9)
     np.testing.assert_array_equal(result.u, 0.0)  # the robot stood still: the command is at rest at once
@@ -460,7 +460,7 @@ def test_a_protective_stop_begins_where_the_measured_robot_is(service: SafetySer
     np.testing.assert_allclose(result.q_cbf - period * result.u, robot, atol=1e-9)
     settled = result.q_cbf
     result = service.tick(arrived + 0.008)  # and never again in this stop
-    assert result.protective_stop
+    assert result.protective_stop and not result.settled
     np.testing.assert_allclose(result.q_cbf, settled + period * result.u, atol=1e-12)
 
 

@@ -127,7 +127,8 @@ not), q_cbf is first brought to the robot's joints ``q_robot`` (measured, extrap
 by their velocity; the caller's), moved by at most [u_min, u_max]·Δt per joint and kept within the
 joint limits; the rows are evaluated there and the step runs from there, its u* still braking from
 u_prev within the acceleration bound. The command moves to where the robot already is, so the
-robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those two steps. Twice a stop at most, never
+robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those two steps (:attr:`StepResult.settled`
+says which; the service's command carries it). Twice a stop at most, never
 more: a servo with a steady error (gravity it does not compensate) would drift down by that error
 at every settle. A missing or non-finite ``q_robot`` settles nothing. Measured (README "The stop
 holds the robot where it is"): with a noisy camera robot-caused contact steps 289 → 62 over three
@@ -268,7 +269,9 @@ class StepResult:
     person inside its margin or reaching it within the look-ahead), or with ``on_intrusion``
     "stop" a person capsule is inside any robot capsule's margin (with "stop_on_give_way" also: a
     person row gave way), so the step aimed at rest (``u_ref`` 0) and no person row asked for more
-    than holding its distance (module docstring)."""
+    than holding its distance (module docstring); ``settled``: q_cbf was first brought to the
+    robot's joints this step (module docstring, "The stop holds the robot where it is"), so
+    |q_cbf − the previous q_cbf| ≤ 2 u_max Δt instead of u_max Δt."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -284,6 +287,7 @@ class StepResult:
     gave_way: tuple[str, ...] = ()
     min_h_self: float | None = None
     ddq: np.ndarray | None = None
+    settled: bool = False
 
 
 class SafetyFilter:
@@ -466,6 +470,7 @@ class SafetyFilter:
         A_all, b_all, inside, low_self, rows = self._write_rows(q)
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
         stop = self.enforce and (self._fixed_body_row_fails(b_all) or (p.on_intrusion in _STOPS and self._intruded(rows)))
+        settled = None
         if (stop or self._stopped) and self._settles(stop) and q_robot is not None:  # brought to the robot (module docstring)
             settled = self._settled(q, q_robot, dt)
             if settled is not None:
@@ -527,7 +532,7 @@ class SafetyFilter:
             person = rows.person_inside(0.0)
             intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
         return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
-                          stop, gave_way, None if low_self == math.inf else low_self, ddq)
+                          stop, gave_way, None if low_self == math.inf else low_self, ddq, settled is not None)
 
     @staticmethod
     def _intruded(rows: BarrierRows) -> bool:

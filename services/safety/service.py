@@ -23,7 +23,8 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    Every command differs from the previous one by at most u_max·Δt per joint, except on the two
    ticks of a protective stop that first move q_cbf by at most u_max·Δt more onto the robot's
    measured joints (its first, and its first after the command is at rest; the newest JointState
-   extrapolated by its dq, :meth:`_robot_at`; the filter's module docstring says why);
+   extrapolated by its dq, :meth:`_robot_at`; the filter's module docstring says why), which the
+   command says (``JointCommand.settled``);
 5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`, with that tick's q_nom
    and the pairs whose rows bind at its u* (:func:`~services.safety.filter.binding_rows`).
 
@@ -260,18 +261,19 @@ class SafetyService(ScheduledService):
             q_nom = pipeline.filter.q_cbf.copy()
         result = pipeline.filter.step(q_nom, self.period, dq_nom, self._robot_at(now))
 
-        q, u, ddq, mode = result.q_cbf, result.u, result.ddq, result.mode
+        q, u, ddq, mode, settled = result.q_cbf, result.u, result.ddq, result.mode, result.settled
         if not (np.isfinite(q).all() and np.isfinite(u).all() and np.isfinite(ddq).all()):  # the filter promises this never happens
             self.nonfinite_holds += 1
             self.refusals.refuse("robot/command")
             q, u, ddq, mode = self._last_q.copy(), np.zeros_like(self._last_q), np.zeros_like(self._last_q), SafetyMode.HOLD
+            settled = False
             pipeline.filter.reset(q)
         message = human.message if human is not None else None
         self._command_pub.put(
             JointCommand(
                 stamp=now, q=q, dq=u, ddq=ddq, mode=mode,
                 human_stamp=message.stamp if message is not None else None,
-                human_seq=message.seq if message is not None else None,
+                human_seq=message.seq if message is not None else None, settled=settled,
             )
         )
         self._last_q = q.copy()

@@ -21,8 +21,9 @@ the bus as one more client (the ``viewer`` certificate: it can only look):
   no service process died.
 - ``command_limits``: over the whole run every recorded JointCommand is finite and moves each
   joint by at most u_max·Δt per control step (``safety.u_max`` / ``u_min``, Δt = 1/``safety.rate_hz``;
-  a gap of n sequence numbers allows n steps), also across the safety service's own restart (its
-  first command against its predecessor's last, counted as one step).
+  a gap of n sequence numbers allows n steps, a command that says it was ``settled`` onto the
+  measured robot one more), also across the safety service's own restart (its first command
+  against its predecessor's last, counted as one step).
 
 ``config_write_kill`` needs no stack: a process forked from a preloaded fork server commits
 versions of the configuration through the config API's own store code
@@ -125,7 +126,7 @@ class _CommandLimits:
         if self._last is not None:
             last_seq, last_q = self._last
             restarted = message.seq <= last_seq  # a new safety process numbers from 0 again
-            steps = 1 if restarted else message.seq - last_seq
+            steps = (1 if restarted else message.seq - last_seq) + message.settled  # a settle: one step more
             ratio = self.ratio(q - last_q, steps)
             self.ratios.append((t, ratio))
             self.max_ratio = max(self.max_ratio, ratio)

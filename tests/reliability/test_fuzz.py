@@ -30,7 +30,8 @@ Everything runs the real code, in this process, with no mocks:
     than the point filter takes to re-anchor (``reacquire_frames``: staying longer is a real move),
     vanish (NaN) or come with zero confidence, through perception → retargeting → CBF-QP → MuJoCo in
     lockstep (:func:`safemimic.evaluate.episode.run_episode`, the services' code): every q_cbf
-    finite, every step within u_max·Δt, and never a step in which the robot's own motion took it
+    finite, every step within u_max·Δt (a protective stop's settling step, which first brings q_cbf
+    to the robot's joints, within 2 u_max·Δt), and never a step in which the robot's own motion took it
     deeper than −1 mm into the *true* person (:func:`robot_deepening`). A person who moves into the
     robot while unseen can end up inside it whatever the robot does (it stops and holds the last
     capsules it saw: ``safety.lost_human_hold_s``); the robot must never be the one that closes in.
@@ -794,10 +795,13 @@ def robot_deepening(conf: StackConfig, episode: Any, truth: Any) -> tuple[int, f
     """Steps in which the robot's own motion took it deeper into the *true* (unglitched) person.
 
     At step k the true person is ``truth``'s state for the frame the filter was using; the robot
-    went from q_cbf[k−1] to q_cbf[k]. A step counts when the true robot–human h after it is below
+    went from q_cbf[k−1] to q_cbf[k], or on a settling step (``episode.settled``: q_cbf first
+    brought to where the robot's joints were measured, so the robot was there already) from
+    q_cbf[k] − Δt u*[k]. A step counts when the true robot–human h after it is below
     −:data:`VIOLATION_TOL` and lower than before it (the person held still): the robot, not the
     person, closed in. Returns (such steps, lowest true h over the run, m).
     """
+    dt = 1.0 / conf.safety.rate_hz
     pipeline = build_pipeline(conf)
     human_rows = ~pipeline.pairs.is_self
     deeper, lowest, frame = 0, math.inf, -2
@@ -807,7 +811,8 @@ def robot_deepening(conf: StackConfig, episode: Any, truth: Any) -> tuple[int, f
         if episode.human[k] != frame:
             frame = int(episode.human[k])
             pipeline.barrier.set_external(*external_capsules(truth.states[frame], pipeline.pairs.n_external, False))
-        before = pipeline.filter.rows_at(episode.q_cbf[k - 1])
+        start = episode.q_cbf[k] - dt * episode.u[k] if episode.settled[k] else episode.q_cbf[k - 1]
+        before = pipeline.filter.rows_at(start)
         after = pipeline.filter.rows_at(episode.q_cbf[k])
         rows = human_rows[: len(after.h)] & after.enabled
         if not rows.any():
@@ -842,7 +847,7 @@ def fuzz_keypoint_glitches(budget: Budget, seed: int) -> CheckResult:
         baseline = run_episode(conf, truth, person, enforce=True, kinematics=kinematics)
         deeper, lowest_true_h = robot_deepening(conf, episode, truth)
         dt = 1.0 / conf.safety.rate_hz
-        steps = np.abs(np.diff(episode.q_cbf, axis=0))
+        steps = np.abs(np.diff(episode.q_cbf, axis=0)) / (1.0 + episode.settled[1:, None])  # a settle: 2 steps
         rate_ratio = float((steps / (np.asarray(conf.safety.u_max) * dt)).max())
         min_h, min_h_clean = (_min_human_h(e) for e in (episode, baseline))
         finite = bool(np.isfinite(episode.q_cbf).all() and np.isfinite(episode.u).all())
@@ -853,6 +858,7 @@ def fuzz_keypoint_glitches(budget: Budget, seed: int) -> CheckResult:
             "min_h_human_m": min_h, "min_h_human_without_glitches_m": min_h_clean, "modes": dict(Counter(MODES[i].value for i in episode.mode)),
             "robot_human_contact_steps": int(episode.true_contact.sum()),
             "robot_deepening_steps": deeper, "min_true_h_m": lowest_true_h,
+            "settling_steps": int(episode.settled.sum()),
         }
         if not finite:
             problems.append(f"{name}: non-finite q_cbf or u*")

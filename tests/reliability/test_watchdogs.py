@@ -10,7 +10,8 @@ the config API does), and perception, the executor and the safety service each s
 and restarted. Checks:
 
 - ``rate_limit``: every command differs from the one before by at most u_max·Δt per joint
-  (Δt = the control period, the longest one used across a restart's gap), every command finite;
+  (Δt = the control period, the longest one used across a restart's gap; 2 u_max·Δt for a command
+  ``settled`` onto the measured robot), every command finite;
 - ``watchdog_human``: with perception gone the status shows ``human_source_lost`` and then
   ``human_stale``, both counted, and the robot stops imitating (|u*| ≈ 0);
 - ``watchdog_joint_state``: with the executor gone the status shows ``joint_state_stale`` and
@@ -91,11 +92,12 @@ def rate_limit_ratios(commands: list[JointCommand], u_max: np.ndarray, periods: 
     Δt_k (``periods``, N − 1) is the nominal control period: the stamps are the ticks' actual start
     times, which jitter, while q_cbf advances by exactly Δt·u* per tick. ticks_k is the seq gap
     (commands lost in transport in between: several ticks' motion); 1 across a restart (seq starts
-    over), so a restarted service must continue exactly where its predecessor's commands left off.
+    over), so a restarted service must continue exactly where its predecessor's commands left off;
+    one more for a command ``settled`` onto the measured robot (a protective stop).
     """
     q = np.array([c.q for c in commands])
     seq = np.array([c.seq for c in commands])
-    ticks = np.where(np.diff(seq) > 0, np.diff(seq), 1)
+    ticks = np.where(np.diff(seq) > 0, np.diff(seq), 1) + np.array([c.settled for c in commands[1:]], dtype=int)
     return (np.abs(np.diff(q, axis=0)) / (u_max * (periods * ticks)[:, None])).max(axis=1)
 
 
