@@ -441,7 +441,7 @@ class SafetyFilter:
         self._rested = True
         return True
 
-    def _settled(self, q: np.ndarray, q_robot: np.ndarray, dt: float) -> np.ndarray | None:
+    def _settle_pose(self, q: np.ndarray, q_robot: np.ndarray, dt: float) -> np.ndarray | None:
         """q_cbf brought to the robot on a protective stop's settling step (:meth:`_settles`):
         ``q_robot`` (n,) clipped to q ± [u_min, u_max]·Δt and to the joint
         limits; None when ``q_robot`` is not a finite (n,) array (the stop then holds q_cbf)."""
@@ -472,7 +472,7 @@ class SafetyFilter:
         stop = self.enforce and (self._fixed_body_row_fails(b_all) or (p.on_intrusion in _STOPS and self._intruded(rows)))
         settled = None
         if (stop or self._stopped) and self._settles(stop) and q_robot is not None:  # brought to the robot (module docstring)
-            settled = self._settled(q, q_robot, dt)
+            settled = self._settle_pose(q, q_robot, dt)
             if settled is not None:
                 q = self.q_cbf = settled
                 A_all, b_all, inside, low_self, rows = self._write_rows(q)
