@@ -185,7 +185,7 @@ class JointCommand(Message):
     an executor feeds it forward through the robot's inertia (zero: velocity feed-forward only, the
     default for a sender without it). Schema version 2 added it.
 
-    ``settled``: q was first brought to the robot's measured joints this tick (a protective stop
+    ``settled``: q was first brought to the robot's measured joints this tick (a stop
     settling, :mod:`services.safety.filter`: the command moves to where the robot is), so q may
     differ from the previous command by u_max·Δt more than the one step's rate limit. Schema
     version 3 added it.

@@ -370,6 +370,36 @@ def person_rushing_in(p, rng: np.random.Generator, q: np.ndarray, *others) -> bo
     return low is not None and low > 0.0
 
 
+def test_a_command_at_rest_after_person_rows_gave_way_is_brought_to_the_robot_once() -> None:
+    """A step whose person rows gave way aims at rest (here ``stop_on_give_way``: a person rushing
+    in faster than any retreat, the robot at rest after a reset); once such a step commanded rest,
+    the next one first brings q_cbf to the robot's measured joints (clipped to u_max·Δt), and the
+    one after does not again while the steps go on aiming at rest. Random states on the real model."""
+    p = pipeline_for(on_intrusion="stop_on_give_way")
+    params, kin = p.filter.params, p.kinematics
+    rng = np.random.default_rng(37)
+    checked = 0
+    for _ in range(40):
+        q = random_safe_state(p, rng)
+        if not person_rushing_in(p, rng, q):
+            continue
+        q_nom = rng.uniform(kin.q_min, kin.q_max)
+        lag = rng.uniform(-4e-3, 4e-3, q.shape)
+        p.filter.reset(q)
+        first = p.filter.step(q_nom, DT, np.zeros_like(q_nom), q + lag)
+        if first.settled or not first.relaxed.any() or np.abs(first.u).max() > 1e-9:
+            continue  # a stop decided from the rows (the person reaches a thigh), or not at rest
+        q = first.q_cbf
+        second = p.filter.step(q_nom, DT, np.zeros_like(q_nom), q + lag)
+        assert second.settled
+        start = np.clip(np.clip(q + lag, q - params.u_max * DT, q + params.u_max * DT), kin.q_min, kin.q_max)
+        np.testing.assert_allclose(second.q_cbf, np.clip(start + DT * second.u, kin.q_min, kin.q_max), atol=1e-12)
+        third = p.filter.step(q_nom, DT, np.zeros_like(q_nom), second.q_cbf + lag)
+        assert third.relaxed.any() and not third.settled
+        checked += 1
+    assert checked >= 5
+
+
 def test_a_person_rushing_in_faster_than_any_retreat_stops_the_robot_on_random_states() -> None:
     """The protective stop when person rows give way (``on_intrusion: stop_on_give_way``): a person
     capsule outside every margin but rushing at the left forearm faster than it could retreat, on

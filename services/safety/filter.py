@@ -9,7 +9,7 @@ pair barrier of the configured geometry, the robot description's joint barriers,
 as the static capsules of :mod:`~services.safety.barriers.static`), each row hard or soft.
 u_lo/u_hi are the velocity bounds intersected with the joint limits reachable in one step; u* is
 clipped to them whatever the solver returns, so |q_cbf⁺ − q_cbf| ≤ u_max Δt holds exactly (twice
-that on the two steps of a protective stop that bring q_cbf to the robot, below).
+that on the steps that first bring q_cbf to the robot, below).
 
 **Self margin.** The hard distance rows (self pairs, static pairs: every hard row of a barrier that
 :attr:`~services.safety.barriers.base.Barrier.measures_distance`) aim ε = ``self_margin`` beyond φ:
@@ -118,23 +118,27 @@ intrusion stop"): the distance the robot closed into the true person 2.4–5× s
 1.7–3.5× within φ, at 11–30 % more contact steps, which are the person's.
 
 **The stop holds the robot where it is.** A servo tracks q_cbf with a lag: braking within the
-acceleration bound leaves the joints 1–8 mrad behind the command, and once the command is at rest
+acceleration bound leaves the joints 1–20 mrad behind the command, and once the command is at rest
 they close that gap, the robot moving on into a person after the filter stopped it (traced with a
 noisy camera: most robot-caused contact steps were u* = 0 with a joint still converging onto
-q_cbf). So on the step a protective stop (of the two above) begins, and once more on its first
-step after a command at rest (|u*| ≤ :data:`AT_REST`: the braking is over, the lag it left is
-not), q_cbf is first brought to the robot's joints ``q_robot`` (measured, extrapolated to the step
-by their velocity; the caller's), moved by at most [u_min, u_max]·Δt per joint and kept within the
-joint limits; the rows are evaluated there and the step runs from there, its u* still braking from
-u_prev within the acceleration bound. The command moves to where the robot already is, so the
-robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those two steps (:attr:`StepResult.settled`
-says which; the service's command carries it). Twice a stop at most, never
-more: a servo with a steady error (gravity it does not compensate) would drift down by that error
-at every settle. A missing or non-finite ``q_robot`` settles nothing. Measured (README "The stop
-holds the robot where it is"): with a noisy camera robot-caused contact steps 289 → 62 over three
-seeds. Every row is evaluated at the settled pose, so the argument below holds there as it is (a
-hard row the few mrad carried past its boundary, which the self margin makes unlikely, is a
-violated one and softened as such).
+q_cbf). A step *aims at rest* when it is a protective stop (any of the above) or a relaxed step
+whose person rows gave way (stage 2 aimed at ū). q_cbf is first brought to the robot's joints
+``q_robot`` (measured, extrapolated to the step by their velocity; the caller's) on the first step
+of a protective stop decided from its rows, and once on the first step after one that aimed at
+rest and commanded it (|u*| ≤ :data:`AT_REST`: the braking is over, the lag it left is not),
+once per run of steps aiming at rest. It is moved by at most [u_min, u_max]·Δt per joint and kept
+within the joint limits; the rows are evaluated there and the step runs from there, its u* still
+braking from u_prev within the acceleration bound. The command moves to where the robot already
+is, so the robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those steps
+(:attr:`StepResult.settled` says which; the service's command carries it). Twice per run of steps
+aiming at rest at most, and never while imitating: a servo with a steady error (gravity it does
+not compensate) would sag by that error at every settle, and a command at rest during imitation
+(a still person, K (q_nom − q_cbf) decayed to nothing) settling onto a servo stuck within its
+friction would start a slow cycle. A missing or non-finite ``q_robot`` settles nothing. Measured
+(README "The stop holds the robot where it is"): with a noisy camera robot-caused contact steps
+289 → 51 and approach steps 298 → 78 over three seeds. Every row is evaluated at the settled
+pose, so the argument below holds there as it is (a hard row the few mrad carried past its
+boundary, which the self margin makes unlikely, is a violated one and softened as such).
 
 *Feasible by construction.* u = 0, σ_i = max(b_i, 0) satisfies every constraint of both stages
 whenever 0 lies in the box, which holds in the last box tried (the velocity box alone, the
@@ -349,8 +353,8 @@ class SafetyFilter:
         self._qp: QPBackend = make_backend(backend)
         self._relaxation = LexicographicSolver()  # DAQP whatever the backend (services.safety.relaxation)
         self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
-        self._stopped = False  # the last step was a protective stop decided from its rows
-        self._rested = False  # that stop's command has come to rest (its second settle is done)
+        self._aimed_rest = False  # the last step aimed at rest (a protective stop, or person rows gave way)
+        self._rested = False  # since the steps began to aim at rest, a settle at rest was done
 
     @property
     def params(self) -> FilterParams:
@@ -385,7 +389,7 @@ class SafetyFilter:
         if q.shape == self.q_cbf.shape and np.isfinite(q).all():
             self.q_cbf = np.clip(q, self.q_min, self.q_max)
             self._u_prev = None
-            self._stopped = self._rested = False
+            self._aimed_rest = self._rested = False
 
     def blocks_at(self, q: np.ndarray) -> list[RowBlock]:
         """Every barrier's rows at configuration ``q`` (no QP, no state change); the pair rows first."""
@@ -427,22 +431,19 @@ class SafetyFilter:
 
     def _settles(self, stop: bool) -> bool:
         """Whether this step brings q_cbf to the robot (module docstring, "The stop holds the robot
-        where it is"): ``stop`` (this step is a protective stop decided from its rows) and it is the
-        stop's first step, or its first after a step whose command was at rest (|u*| ≤
-        :data:`AT_REST`); advances the stop's state either way."""
-        if not stop:
-            self._stopped = self._rested = False
-            return False
-        if not self._stopped:
-            self._stopped = True
+        where it is"): ``stop`` (this step is a protective stop decided from its rows) and the last
+        step did not aim at rest (the stop's first step); or the last step aimed at rest and
+        commanded it (|u*| ≤ :data:`AT_REST`), the first such step since the steps began to aim at
+        rest (marked done here; :meth:`step` clears the mark once a step no longer aims at rest)."""
+        if stop and not self._aimed_rest:
             return True
-        if self._rested or self._u_prev is None or float(np.abs(self._u_prev).max()) > AT_REST:
+        if not self._aimed_rest or self._rested or self._u_prev is None or float(np.abs(self._u_prev).max()) > AT_REST:
             return False
         self._rested = True
         return True
 
     def _settle_pose(self, q: np.ndarray, q_robot: np.ndarray, dt: float) -> np.ndarray | None:
-        """q_cbf brought to the robot on a protective stop's settling step (:meth:`_settles`):
+        """q_cbf brought to the robot on a settling step (:meth:`_settles`):
         ``q_robot`` (n,) clipped to q ± [u_min, u_max]·Δt and to the joint
         limits; None when ``q_robot`` is not a finite (n,) array (the stop then holds q_cbf)."""
         q_robot = np.asarray(q_robot, dtype=np.float64)
@@ -457,8 +458,8 @@ class SafetyFilter:
         """One control step towards ``q_nom`` (n,) over ``dt`` seconds; ``dq_nom`` (n,) rad/s, the
         target's velocity, is fed forward (u_ref = dq_nom + K (q_nom − q_cbf); None: K only).
         ``q_robot`` (n,) rad: the robot's joints at this step (measured, extrapolated to now; None:
-        unknown), to which q_cbf is brought as a protective stop begins and once its command is at
-        rest (module docstring).
+        unknown), to which q_cbf is brought as a protective stop begins and once a command aiming
+        at rest is at rest (module docstring).
 
         Every barrier writes its rows into the stacked A, b, soft, h (:meth:`Barrier.write_rows`);
         u_ref, the first velocity box and the rows a velocity can move, in the QP solver's layout, come
@@ -471,7 +472,7 @@ class SafetyFilter:
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
         stop = self.enforce and (self._fixed_body_row_fails(b_all) or (p.on_intrusion in _STOPS and self._intruded(rows)))
         settled = None
-        if (stop or self._stopped) and self._settles(stop) and q_robot is not None:  # brought to the robot (module docstring)
+        if (stop or self._aimed_rest) and self._settles(stop) and q_robot is not None:  # brought to the robot (module docstring)
             settled = self._settle_pose(q, q_robot, dt)
             if settled is not None:
                 q = self.q_cbf = settled
@@ -501,6 +502,7 @@ class SafetyFilter:
         qp_time = solution.solve_time_s
         u = solution.u
         relaxed = self._none_relaxed
+        gave_rest = False
         gave_way: tuple[str, ...] = ()
         if u is not None:
             active = solution.active_rows
@@ -511,6 +513,7 @@ class SafetyFilter:
             u, mode, active, relaxed, gave_way, seconds, lower, upper, honours, gave_stop = self._relaxed_step(
                 problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0])
             qp_time += seconds
+            gave_rest = bool((relaxed & soft_all[: relaxed.shape[0]]).any())  # stage 2 aimed at rest
             if gave_stop:  # the protective stop when person rows give way (module docstring): it tracked rest
                 stop, u_ref = True, np.zeros(n)
         if not honours:
@@ -527,6 +530,9 @@ class SafetyFilter:
             ddq = np.zeros(n) if u_prev is None else (u - u_prev) / dt
         self.q_cbf = q_next
         self._u_prev = u
+        # the steps aiming at rest (module docstring, "The stop holds the robot where it is")
+        self._aimed_rest = stop or gave_rest
+        self._rested = self._rested and self._aimed_rest
         intrusion = False
         if self.enforce and rows.min_h_all < 0.0:  # min over enabled rows: no row inside its margin, no intrusion
             person = rows.person_inside(0.0)

@@ -20,11 +20,11 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    ``safety.lost_human_hold_s`` (:class:`~services.safety.human_memory.HumanMemory`).
 4. one CBF-QP step with Δt = the nominal period; the command (q_cbf, u*) is checked finite and
    published on ``robot/command`` (a non-finite one is replaced by the last command, counted).
-   Every command differs from the previous one by at most u_max·Δt per joint, except on the two
-   ticks of a protective stop that first move q_cbf by at most u_max·Δt more onto the robot's
-   measured joints (its first, and its first after the command is at rest; the newest JointState
-   extrapolated by its dq, :meth:`_robot_at`; the filter's module docstring says why), which the
-   command says (``JointCommand.settled``);
+   Every command differs from the previous one by at most u_max·Δt per joint, except on the ticks
+   of a stop that first move q_cbf by at most u_max·Δt more onto the robot's measured joints
+   (a protective stop's first, and the first after a command aiming at rest is at rest; the newest
+   JointState extrapolated by its dq, :meth:`_robot_at`; the filter's module docstring says why),
+   which the command says (``JointCommand.settled``);
 5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`, with that tick's q_nom
    and the pairs whose rows bind at its u* (:func:`~services.safety.filter.binding_rows`).
 
@@ -350,8 +350,8 @@ class SafetyService(ScheduledService):
         """The robot's joints at monotonic time ``now`` (rad): the newest JointState's q extrapolated
         by its dq over the time since it arrived (a state period at most, 5 ms at 200 Hz, while the
         executor is live); None before the first one or while the ``joint_state`` watchdog is tripped.
-        The filter brings q_cbf there as a protective stop begins and once its command is at rest
-        (:meth:`SafetyFilter.step`)."""
+        The filter brings q_cbf there as a protective stop begins and once a command aiming at rest
+        is at rest (:meth:`SafetyFilter.step`)."""
         received = self._joint_state_seen
         if received is None or self.watchdogs.tripped("joint_state"):
             return None
