@@ -11,8 +11,8 @@
    rate fed forward as the service does (:mod:`services.safety.nominal`; q_cbf while stale or lost);
 3. one CBF-QP step gives q_cbf and u*, the MuJoCo executor servos to them for one control period;
    the step knows the robot's joints as the service does, from a JointState sampled every
-   ``executor.state_rate_hz`` period and extrapolated by its velocity (a protective stop brings
-   q_cbf there: :mod:`services.safety.filter`);
+   ``executor.state_rate_hz`` period and extrapolated by its velocity (a stop brings q_cbf
+   there: :mod:`services.safety.filter`);
 4. the outcome is measured: MuJoCo's robot–robot contacts, robot–human contacts with the true
    person (every robot surface, with the robot's own closing speed at each contact) and with the
    perceived one, and :class:`~safemimic.evaluate.truth.TruthProbe`'s clearances at q_sim.
@@ -61,7 +61,7 @@ class Episode:
     ``active`` (N, m) pair rows binding in the QP; ``binding`` (N,) some QP row binds (a pair or a joint barrier); ``mode``
     (N,) index into :data:`MODES`; ``qp_ms`` (N,) solve time (wall clock); ``human`` (N,) index
     of the perceived state in force (−1: none yet); ``settled`` (N,) the step first brought q_cbf
-    to the robot's joints (a protective stop: the step then ran from q_cbf[k] − Δt u*[k], not from
+    to the robot's joints (a stop: the step then ran from q_cbf[k] − Δt u*[k], not from
     q_cbf[k−1]); ``pairs`` names the columns of ``h``.
 
     The world: ``q_sim``/``dq_sim`` (N, 8) simulated joints after the step; ``qpos`` (N, nq) the

@@ -472,7 +472,7 @@ class SafetyFilter:
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
         stop = self.enforce and (self._fixed_body_row_fails(b_all) or (p.on_intrusion in _STOPS and self._intruded(rows)))
         settled = None
-        if (stop or self._aimed_rest) and self._settles(stop) and q_robot is not None:  # brought to the robot (module docstring)
+        if self._settles(stop) and q_robot is not None:  # q_cbf brought to the robot (module docstring)
             settled = self._settle_pose(q, q_robot, dt)
             if settled is not None:
                 q = self.q_cbf = settled
