@@ -179,7 +179,7 @@ from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
 from services.safety.qp.base import INF_BOUND
 from services.safety.qp.box import (
-    HIGH, LOW, LOWER, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
+    HIGH, LOW, LOWER, U_MAX, U_MIN, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
 )
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
 from shared.config import IntrusionResponse
@@ -449,9 +449,8 @@ class SafetyFilter:
         q_robot = np.asarray(q_robot, dtype=np.float64)
         if q_robot.shape != q.shape or not np.isfinite(q_robot).all():
             return None
-        p = self.params
-        lower = -p.u_max if p.u_min is None else p.u_min
-        return np.clip(np.clip(q_robot, q + lower * dt, q + p.u_max * dt), self.q_min, self.q_max)
+        limits = self._limits  # its velocity rows: u_min (None: −u_max) and u_max
+        return np.clip(np.clip(q_robot, q + limits[U_MIN] * dt, q + limits[U_MAX] * dt), self.q_min, self.q_max)
 
     def step(self, q_nom: np.ndarray, dt: float, dq_nom: np.ndarray | None = None,
              q_robot: np.ndarray | None = None) -> StepResult:
