@@ -1,4 +1,4 @@
-"""Point filter (EMA + jump rejection + hold + reset) and the capsules built from its output."""
+"""Point filter (EMA or One Euro + jump rejection + hold + reset) and the capsules built from its output."""
 
 from __future__ import annotations
 

@@ -171,8 +171,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser = parser or argparse.ArgumentParser(prog="safemimic perception")
     parser.description = (
         "Run the perception service: a skeleton source (a .npz replay, a scripted scenario, a camera or a ZED) → point "
-        "filter (EMA + jump rejection) → 8 pose angles + 7 human capsules in the robot frame → "
-        "HumanState on safemimic/{robot_id}/human/state at the source rate."
+        "filter (One Euro by default or the paper's EMA, with jump rejection) → 8 pose angles + 7 human capsules in "
+        "the robot frame → HumanState on safemimic/{robot_id}/human/state at the source rate."
     )
     add_bus_arguments(parser)
     group = parser.add_argument_group("perception (overrides perception.* of the configuration)")
