@@ -333,6 +333,39 @@ def test_fidelity_is_judged_from_one_second_after_the_person_is_first_perceived(
     assert never["lag_ms_target"] is never["lag_ms_command"] is never["lag_ms_servo"] is None
 
 
+def test_fidelity_waits_for_a_person_who_walks_into_view_late(tmp_path: Path) -> None:
+    """A recording whose first second has no skeleton (the person not yet in view): perception
+    publishes states that show nobody, and the judged steps begin ACQUIRE_S after the first state
+    that shows the person (1 s + the latency), not after the first state."""
+    from safemimic.evaluate.evaluation import evaluate
+
+    xyz = raise_recording(2.5)
+    xyz[:30] = np.nan
+    path = write_recording(tmp_path / "late.npz", xyz)
+    evaluation = evaluate(evaluation_config(str(path), None, "recorded", None))
+    shows = evaluation.human.in_view(np.arange(len(evaluation.human.states)))
+    assert not shows[:30].any() and shows[30:].all()
+    assert not evaluation.human.in_view(np.array([-1]))[0]  # no state in force yet
+    metrics = evaluation.metrics()
+    for run in ("cbf", "nominal"):
+        assert metrics[run]["fidelity"]["judged_from_s"] == pytest.approx(1.0 + 0.06 + ACQUIRE_S, abs=0.004)
+
+
+def test_a_recording_of_one_frame_is_held_and_evaluated(tmp_path: Path) -> None:
+    """One frame is a person standing still: the true person holds it at every control step and
+    the evaluation runs (nothing to judge the lag on) instead of failing on its interpolation."""
+    from safemimic.evaluate.evaluation import evaluate
+
+    xyz = raise_recording(1.0)[:1]
+    path = write_recording(tmp_path / "one.npz", xyz)
+    conf = evaluation_config(str(path), None, "recorded", None)
+    points, valid = interpolate_skeleton(open_input(conf), np.array([0.0, 0.5]))
+    assert valid.all()
+    np.testing.assert_array_equal(points[1], xyz[0])
+    metrics = evaluate(conf).metrics()
+    assert metrics["cbf"]["nan_count"] == 0 and metrics["cbf"]["fidelity"]["lag_ms"] is None
+
+
 def test_a_robot_exactly_one_latency_late_scores_the_latency_floor() -> None:
     """rms_true_free_latency_floor is what a robot exactly at the target seen L late scores: for a
     sine of amplitude a and angular frequency ω, a·√2·|sin(ωL/2)|; a robot that trails further

@@ -44,9 +44,12 @@ class Evaluation:
         free = free_steps(self.cbf)
         phi, mirror = self.conf.safety.phi, self.conf.retargeting.mirror
         at_target = target_directions(self.person, mirror)
+        latency = self.camera.latency_s
         return {
-            "cbf": run_metrics(self.cbf, free, self.person, phi, mirror, at_target, self.camera.latency_s),
-            "nominal": run_metrics(self.nominal, free, self.person, phi, mirror, at_target, self.camera.latency_s),
+            "cbf": run_metrics(self.cbf, free, self.person, phi, mirror, at_target, latency,
+                               self.human.in_view(self.cbf.human)),
+            "nominal": run_metrics(self.nominal, free, self.person, phi, mirror, at_target, latency,
+                                   self.human.in_view(self.nominal.human)),
             "input": input_metrics(self.conf, self.source, self.human, self.cbf, self.placement, self.camera),
         }
 

@@ -2,7 +2,8 @@
 
 Against ``q_true`` (the true skeleton retargeted as the stack retargets: same estimator,
 calibration, mirror and retargeting method) and the simulated joints q_sim, per run, over the *judged steps*: from
-:data:`ACQUIRE_S` after the first perceived state to the end (before, the robot is still moving from
+:data:`ACQUIRE_S` after the person is first perceived (a state with a valid pose angle: not a frame
+without a skeleton, before they walk into view) to the end (before, the robot is still moving from
 its home pose to the person's first pose, which says nothing of how it follows a motion):
 
 - ``lag_ms``: for each joint whose ``q_true`` moves more than :data:`MOVING_RAD` (peak to peak),
@@ -33,7 +34,7 @@ its home pose to the person's first pose, which says nothing of how it follows a
   exactly at ``q_true`` (perfect tracking), over the same samples: the share of the direction error
   that the retargeting (``retargeting.method``: by directions, or the paper's eq. 2) and the
   robot's kinematics leave, which no controller can remove;
-- ``judged_from_s``: where the judged steps begin (s; null: no perceived state).
+- ``judged_from_s``: where the judged steps begin (s; null: the person was never perceived).
 """
 
 from __future__ import annotations
@@ -97,8 +98,8 @@ def direction_errors(keypoints: np.ndarray, valid: np.ndarray, robot: np.ndarray
 
 
 def judged_from(perceived: np.ndarray, dt: float) -> int | None:
-    """The first judged step: :data:`ACQUIRE_S` after the first step with a perceived state in force
-    (``perceived`` (N,) bool); None if there is none."""
+    """The first judged step: :data:`ACQUIRE_S` after the first step whose perceived state in force
+    shows the person (``perceived`` (N,) bool: some pose angle valid); None if there is none."""
     first = np.flatnonzero(perceived)
     return int(first[0]) + round(ACQUIRE_S / dt) if first.size else None
 
@@ -113,7 +114,7 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
              latency_s: float, *, q_nom: np.ndarray, q_cbf: np.ndarray) -> dict[str, float | None]:
     """The ``fidelity`` object of one run (module docstring): ``q_true``/``q_sim`` (N, 8) rad,
     ``free`` (N,) the free steps, ``directions``/``directions_at_target`` (N, 4) deg from
-    :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) a perceived state is in force,
+    :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) the perceived state in force shows the person,
     ``latency_s`` the camera latency (s), ``q_nom``/``q_cbf`` (N, 8) rad the run's target and safe
     command (the stages of the lag)."""
     start = judged_from(perceived, dt)

@@ -142,10 +142,12 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
 
 
 def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, mirror: bool,
-                directions_at_target: np.ndarray, latency_s: float) -> dict[str, Any]:
+                directions_at_target: np.ndarray, latency_s: float, in_view: np.ndarray) -> dict[str, Any]:
     """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by the ``*_free`` keys;
     ``person``: the true person; ``phi``: the safety margin (m); ``mirror``: facing the person;
-    ``latency_s``: the camera latency (s) of the fidelity floor;
+    ``latency_s``: the camera latency (s) of the fidelity floor; ``in_view`` (N,): the perceived
+    state in force shows the person (:meth:`HumanTrack.in_view`; fidelity is judged from 1 s after
+    the first such step);
     ``directions_at_target``: :func:`direction_errors` of the robot placed at q_true (the same for
     every run of one input: :func:`target_directions`)."""
     is_self = ep.pairs.is_self
@@ -171,7 +173,7 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         **truth_metrics(ep, phi),
         "fidelity": fidelity(person.q_true, ep.q_sim, free,
                              direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
-                             directions_at_target, ep.human >= 0, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0,
+                             directions_at_target, in_view, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0,
                              latency_s, q_nom=ep.q_nom, q_cbf=ep.q_cbf),
     }
     assert tuple(metrics) == RUN_KEYS

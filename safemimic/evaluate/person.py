@@ -79,6 +79,13 @@ class HumanTrack:
     states: tuple[HumanState, ...]
     counters: PerceptionCounters
 
+    def in_view(self, index: np.ndarray) -> np.ndarray:
+        """Whether the state in force shows the person, per step: ``index`` (N,) the state in force
+        (−1: none yet) → (N,) bool, a state is in force and some pose angle of it is valid (a
+        frame without a skeleton, e.g. before the person walks into view, shows nobody)."""
+        shows = np.array([bool(s.theta_valid.any()) for s in self.states] + [False])
+        return shows[np.where(index >= 0, index, len(self.states))]
+
 
 @dataclass(frozen=True)
 class TruePerson:
@@ -139,8 +146,11 @@ def interpolate_skeleton(source: EvaluationInput, t: np.ndarray) -> tuple[np.nda
     times = np.array([f.t for f in source.frames]) - source.frames[0].t
     xyz = np.stack([f.xyz for f in source.frames])
     present = np.isfinite(xyz).all(axis=2) & (np.stack([f.conf for f in source.frames]) > 0.0)
-    upper = np.clip(np.searchsorted(times, t, side="right"), 1, max(1, len(times) - 1))
-    lower = upper - 1 if len(times) > 1 else np.zeros_like(upper)
+    if len(times) > 1:
+        upper = np.clip(np.searchsorted(times, t, side="right"), 1, len(times) - 1)
+        lower = upper - 1
+    else:  # one frame: held throughout
+        upper = lower = np.zeros(t.shape, np.intp)
     span = times[upper] - times[lower]
     w = np.clip(np.divide(t - times[lower], span, out=np.zeros_like(t), where=span > 0), 0.0, 1.0)
     points = (1.0 - w)[:, None, None] * xyz[lower] + w[:, None, None] * xyz[upper]
