@@ -114,9 +114,9 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
              latency_s: float, *, q_nom: np.ndarray, q_cbf: np.ndarray) -> dict[str, float | None]:
     """The ``fidelity`` object of one run (module docstring): ``q_true``/``q_sim`` (N, 8) rad,
     ``free`` (N,) the free steps, ``directions``/``directions_at_target`` (N, 4) deg from
-    :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) the perceived state in force shows the person,
-    ``latency_s`` the camera latency (s), ``q_nom``/``q_cbf`` (N, 8) rad the run's target and safe
-    command (the stages of the lag)."""
+    :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) the perceived state in force
+    shows the person, ``latency_s`` the camera latency (s), ``q_nom``/``q_cbf`` (N, 8) rad the run's
+    target and safe command (the stages of the lag)."""
     start = judged_from(perceived, dt)
     first = len(q_true) if start is None else min(start, len(q_true))
     lag = lag_ms(q_true, q_sim, dt, first)
