@@ -33,7 +33,9 @@ N_JOINTS = len(IMITATION_JOINT_NAMES)
 
 
 def _array_validator(shape: tuple[int, ...], dtype: type) -> BeforeValidator:
-    """Coerce to a C-contiguous ``dtype`` array of exactly ``shape``; floats must be finite."""
+    """Coerce to a C-contiguous ``dtype`` array of exactly ``shape``; floats must be finite; values
+    of another kind that do not convert within their kind (numpy's ``same_kind``: floats into a
+    bool field, where a NaN would become True) are refused, not cast."""
     expected = np.dtype(dtype)
     is_float = expected.kind == "f"
 
@@ -44,7 +46,10 @@ def _array_validator(shape: tuple[int, ...], dtype: type) -> BeforeValidator:
             raise ValueError(f"expected an array of shape {shape}, got {type(value).__name__}")
         else:
             try:
-                array = np.ascontiguousarray(value, dtype=expected)
+                given = np.asarray(value)
+                if not np.can_cast(given.dtype, expected, casting="same_kind"):
+                    raise ValueError(f"{given.dtype} values are not {expected.name}")
+                array = np.ascontiguousarray(given, dtype=expected)
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"expected a {expected.name} array of shape {shape}: {exc}") from None
         if array.shape != shape:

@@ -459,6 +459,22 @@ def test_nan_and_inf_rejected_everywhere(cls: type[Message], field: str, bad: fl
             decode(pack(payload))
 
 
+@pytest.mark.parametrize("field", ["keypoint_valid", "theta_valid", "capsule_valid"])
+def test_a_bool_field_refuses_numbers_of_another_kind(field: str) -> None:
+    """A validity mask given as floats (a NaN among them would be cast to True) or as integers is
+    refused when built and when decoded, with a message naming the dtype; bools pass, and a float
+    field still takes integers and bools (they convert within their kind)."""
+    good = make(HumanState)
+    mask = getattr(good, field)
+    for wrong in (mask.astype(np.float64), np.where(mask, np.nan, 0.0), mask.astype(np.int64)):
+        _assert_refused(good, field, wrong)
+    with pytest.raises(ValidationError, match="float64 values are not bool"):
+        make(HumanState, **{field: mask.astype(np.float64)})
+    assert getattr(make(HumanState, **{field: mask.tolist()}), field).dtype == np.bool_
+    joint = make(JointState, q=np.arange(8), dq=np.zeros(8, bool))
+    assert joint.q.dtype == np.float64 and joint.dq.dtype == np.float64
+
+
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 @pytest.mark.parametrize(("cls", "field"), [(JointState, "q"), (HumanState, "keypoints"), (HumanState, "capsules")])
 def test_finite_arrays_whose_sum_overflows_are_accepted(cls: type[Message], field: str, sign: float) -> None:
