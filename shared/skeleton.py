@@ -4,13 +4,15 @@ A recording holds ``names`` (K canonical keypoint names, any order), ``t`` (T,) 
 ``xyz`` (T, K, 3) metres, z up, ``fps`` (scalar), optional ``conf`` (T, K) in [0, 1] and
 ``source`` (text). Reading maps the file's keypoints into the canonical order of
 :data:`shared.names.KEYPOINT_NAMES`; keypoints absent from the file are NaN with confidence 0
-(missing, never invented). Extra keys in the file are ignored.
+(missing, never invented: :func:`with_hip_centre_pelvis` is the one completion, which the replay
+source asks for). Extra keys in the file are ignored. A file whose person does not stand along z
+(a y-up file, axes swapped) is refused (:func:`_check_upright`).
 """
 
 from __future__ import annotations
 
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,10 @@ from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
 _UNIT_CHECK_SEGMENTS = (("left_shoulder", "left_elbow"), ("right_shoulder", "right_elbow"), ("left_hip", "left_knee"))
 _MAX_SEGMENT_M = 1.0
 _MAX_COORD_M = 100.0
+#: A recording is z up when its torso (pelvis or hip centre → shoulder centre) is within 60° of +z
+#: (cos ≥ 0.5) in the median frame: a person bending, turning or lying back now and then stays far
+#: above, a y-up file's torso lies along a horizontal axis (cos ≈ 0) and an upside-down one at −1.
+_MIN_UPRIGHT_COS = 0.5
 
 
 class RecordingError(SafemimicError, ValueError):
@@ -88,6 +94,7 @@ def read_recording(path: str | Path) -> Recording:
     canonical_xyz[:, index] = xyz
     canonical_conf[:, index] = np.where(finite.all(axis=-1), conf_in, 0.0)
     _check_units(canonical_xyz, path)
+    _check_upright(canonical_xyz, path)
     _require(bool((np.abs(xyz[finite]) < _MAX_COORD_M).all()), path, f"coordinates beyond {_MAX_COORD_M} m from the origin")
 
     source = str(arrays["source"]) if "source" in arrays else ""
@@ -102,6 +109,45 @@ def _check_units(xyz: np.ndarray, path: Path) -> None:
         if lengths.size:
             median = float(np.median(lengths))
             _require(median <= _MAX_SEGMENT_M, path, f"{a}–{b} is {median:.2f} long: units must be metres")
+
+
+def hip_centre(xyz: np.ndarray) -> np.ndarray:
+    """(…, 3) the midpoint of the hips of canonical points ``xyz`` (…, 15, 3) (NaN where a hip is)."""
+    return 0.5 * (xyz[..., KEYPOINT_INDEX["left_hip"], :] + xyz[..., KEYPOINT_INDEX["right_hip"], :])
+
+
+def _check_upright(xyz: np.ndarray, path: Path) -> None:
+    """The person must stand along +z (the format is z up): in the median frame with a torso, the
+    unit vector from the pelvis (the hip centre where it is missing) to the shoulder centre has a z
+    component ≥ :data:`_MIN_UPRIGHT_COS`. Frames without a torso say nothing; none: no check."""
+    pelvis = xyz[:, KEYPOINT_INDEX["pelvis"]]
+    pelvis = np.where(np.isfinite(pelvis).all(axis=-1, keepdims=True), pelvis, hip_centre(xyz))
+    shoulders = 0.5 * (xyz[:, KEYPOINT_INDEX["left_shoulder"]] + xyz[:, KEYPOINT_INDEX["right_shoulder"]])
+    torso = shoulders - pelvis
+    length = np.linalg.norm(torso, axis=-1)
+    seen = np.isfinite(length) & (length > 0.05)
+    if seen.any():
+        up = float(np.median(torso[seen, 2] / length[seen]))
+        _require(up >= _MIN_UPRIGHT_COS, path,
+                 f"the person does not stand along z (torso to +z: median cos {up:.2f}, needs ≥ {_MIN_UPRIGHT_COS}): "
+                 "the format is z up, metres; a y-up file needs its axes swapped")
+
+
+def with_hip_centre_pelvis(recording: Recording) -> Recording:
+    """``recording`` with the pelvis, where it is missing and both hips are present, at the hip
+    centre, its confidence the smaller of the hips': the pelvis as the camera sources define it
+    (:mod:`services.perception.camera`), so a file from a skeleton without one (COCO-style
+    estimators) or with it occluded keeps its torso angles and capsule. Other keypoints as they are."""
+    pelvis = KEYPOINT_INDEX["pelvis"]
+    hips = [KEYPOINT_INDEX["left_hip"], KEYPOINT_INDEX["right_hip"]]
+    valid = recording.valid
+    fill = ~valid[:, pelvis] & valid[:, hips].all(axis=1)
+    if not fill.any():
+        return recording
+    xyz, conf = recording.xyz.copy(), recording.conf.copy()
+    xyz[fill, pelvis] = hip_centre(xyz[fill])
+    conf[fill, pelvis] = conf[fill][:, hips].min(axis=1)
+    return replace(recording, xyz=xyz, conf=conf)
 
 
 def write_recording(path: str | Path, recording: Recording, names: tuple[str, ...] = KEYPOINT_NAMES) -> Path:

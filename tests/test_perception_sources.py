@@ -74,6 +74,23 @@ def test_replay_reads_keys_in_another_order_with_extra_keys(tmp_path) -> None:
     assert not any(f.discontinuity for f in frames)
 
 
+def test_a_recording_without_a_pelvis_replays_with_the_hip_centre_and_a_whole_torso(tmp_path) -> None:
+    """A file from a skeleton with no pelvis keypoint (COCO-style estimators): the replay source
+    puts it at the hip centre, as the camera sources do, so the person keeps their torso capsule
+    (the robot's rows still see it) and is placed by it."""
+    clip = walking_clip()
+    names = [n for n in KEYPOINT_NAMES if n != "pelvis"]
+    np.savez(tmp_path / "coco.npz", names=np.array(names), t=np.arange(len(clip)) / FPS, fps=FPS,
+             xyz=clip[:, [K[n] for n in names]])
+    frames = frames_of(PerceptionConfig(source="replay", recording=str(tmp_path / "coco.npz"), placement="recorded",
+                                        realtime=False))
+    xyz = np.array([f.xyz for f in frames])
+    np.testing.assert_allclose(xyz[:, K["pelvis"]], 0.5 * (clip[:, K["left_hip"]] + clip[:, K["right_hip"]]))
+    capsules, points = HumanCapsules(HumanConfig()), PointFilter(PerceptionConfig().point_filter, 15)
+    valid = [capsules(points(f.t, f.xyz, f.conf))[1] for f in frames]
+    assert all(v[CAPSULE_NAMES.index("torso")] for v in valid)
+
+
 def test_placements_put_the_person_where_they_say(tmp_path) -> None:
     clip = walking_clip()
     # The same person recorded in some other world frame: turned 130° and 3 m away.

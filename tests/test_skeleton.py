@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
-from shared.skeleton import Recording, RecordingError, read_recording, write_recording
+from shared.skeleton import Recording, RecordingError, read_recording, with_hip_centre_pelvis, write_recording
 from tests.support.team import MOCAP_DIR
 
 
@@ -60,6 +60,8 @@ def test_missing_keypoints_are_marked_not_invented(tmp_path) -> None:
         ({"xyz": np.stack([standing_pose() + 500.0] * 3)}, "beyond 100.0 m"),
         ({"conf": np.full((3, 15), 2.0)}, "'conf' must lie in"),
         ({"fps": -1.0}, "'fps'"),
+        ({"xyz": np.stack([standing_pose()[:, [0, 2, 1]] * (1, 1, -1)] * 3)}, "does not stand along z"),  # y up
+        ({"xyz": np.stack([standing_pose() * (1, 1, -1)] * 3)}, "does not stand along z"),  # upside down
     ],
 )
 def test_bad_files_give_clear_errors(tmp_path, change, message) -> None:
@@ -68,6 +70,41 @@ def test_bad_files_give_clear_errors(tmp_path, change, message) -> None:
     save(tmp_path / "bad.npz", **arrays)
     with pytest.raises(RecordingError, match=message):
         read_recording(tmp_path / "bad.npz")
+
+
+def test_a_person_bending_or_lying_back_at_times_is_still_upright(tmp_path) -> None:
+    """The z-up check takes the median frame: 4 of 10 frames with the torso horizontal (bent
+    forward, then lying back) and a pelvis missing from the file altogether still read."""
+    pose = standing_pose()
+    lying = pose.copy()
+    lying[:, [0, 2]] = pose[:, [2, 0]] - (1.0, 0.0)  # about y: the head along +x at z ≈ 0
+    xyz = np.stack([pose] * 6 + [lying] * 4)
+    names = [n for n in KEYPOINT_NAMES if n != "pelvis"]
+    save(tmp_path / "r.npz", names=np.array(names), t=np.arange(10) / 30, fps=30.0,
+         xyz=xyz[:, [KEYPOINT_INDEX[n] for n in names]])
+    assert len(read_recording(tmp_path / "r.npz")) == 10
+
+
+def test_the_pelvis_completion_is_the_hip_centre_only_where_it_is_missing() -> None:
+    rng = np.random.default_rng(3)
+    xyz = standing_pose()[None] + rng.normal(scale=0.02, size=(4, 15, 3))
+    conf = rng.uniform(0.2, 1.0, size=(4, 15))
+    pelvis, left, right = KEYPOINT_INDEX["pelvis"], KEYPOINT_INDEX["left_hip"], KEYPOINT_INDEX["right_hip"]
+    xyz[1:, pelvis] = np.nan  # frames 1–3 without a pelvis; in frame 2 a hip is missing too, in 3 its confidence is 0
+    xyz[2, left] = np.nan
+    conf[3, right] = 0.0
+    rec = Recording(t=np.arange(4) / 30, xyz=xyz, conf=conf, fps=30.0)
+    done = with_hip_centre_pelvis(rec)
+    np.testing.assert_array_equal(done.xyz[0], xyz[0])  # a pelvis present is kept
+    np.testing.assert_allclose(done.xyz[1, pelvis], 0.5 * (xyz[1, left] + xyz[1, right]))
+    assert done.conf[1, pelvis] == min(conf[1, left], conf[1, right]) and done.valid[1, pelvis]
+    assert not done.valid[2, pelvis] and not done.valid[3, pelvis]  # never from one hip
+    mask = np.ones(15, bool)
+    mask[pelvis] = False
+    np.testing.assert_array_equal(done.xyz[:, mask], xyz[:, mask])  # nothing else changes
+    np.testing.assert_array_equal(done.conf[:, mask], conf[:, mask])
+    assert np.isnan(rec.xyz[1, pelvis]).all()  # the input is not written
+    assert with_hip_centre_pelvis(done) is done  # nothing left to complete
 
 
 def test_missing_required_key_and_not_a_file(tmp_path) -> None:

@@ -18,7 +18,7 @@ from services.perception.scenarios import get_scenario, scenario_frames
 from services.perception.base import PlayedSource, SkeletonSource
 from shared.body import Body
 from shared.config import PerceptionConfig, SkeletonSourceName, resolve_config_path
-from shared.skeleton import RecordingError, read_recording
+from shared.skeleton import RecordingError, read_recording, with_hip_centre_pelvis
 
 
 class SourceUnavailable(PerceptionError, RuntimeError):
@@ -41,7 +41,8 @@ def open_source(conf: PerceptionConfig, paper_zone: float | None = None) -> Skel
 
 
 def open_replay(conf: PerceptionConfig) -> PlayedSource:
-    """Replay ``conf.recording``, normalised and placed, paced and looped as configured."""
+    """Replay ``conf.recording``, normalised and placed, paced and looped as configured; a missing
+    pelvis is the hip centre, as the camera sources' (:func:`~shared.skeleton.with_hip_centre_pelvis`)."""
     if not conf.recording:
         raise SourceUnavailable("the replay source needs a recording (perception.recording or --recording FILE.npz)")
     path = resolve_config_path(conf.recording)  # relative: against the configuration folder
@@ -50,7 +51,7 @@ def open_replay(conf: PerceptionConfig) -> PlayedSource:
         placement = parse_placement(conf.placement, conf)
     except (RecordingError, ValueError) as exc:
         raise SourceUnavailable(str(exc)) from None
-    placed = place_recording(recording, placement)
+    placed = place_recording(with_hip_centre_pelvis(recording), placement)
     return PlayedSource(
         name=f"replay {path.name}",
         times=placed.t,
