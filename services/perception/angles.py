@@ -120,11 +120,6 @@ BRANCH_JUMP = 0.5 * math.pi
 MAX_DECAY_STEP = 0.25 * math.pi
 #: Frame period assumed when the estimator is called without times (s).
 NOMINAL_FRAME_S = 1.0 / 30.0
-def wrap_2pi(angle: float) -> float:
-    """``angle`` wrapped into [−π, π)."""
-    return angle - _TWO_PI * math.floor((angle + math.pi) / _TWO_PI)
-
-
 def wrap_pi(angle: float) -> float:
     """``angle`` wrapped into [−π/2, π/2): the difference modulo a half turn."""
     return angle - math.pi * math.floor(angle / math.pi + 0.5)
@@ -310,8 +305,8 @@ class AngleRates:
 
     Per angle i, between frames at t_prev and t (Δt = t − t_prev > 0) where θ_i is valid in both
     and none of its keypoints (:data:`ANGLE_KEYPOINTS`) is fresh (re-initialised by the point
-    filter this frame), the difference wrap_2pi(θ_i(t) − θ_i(t_prev)) goes through the rate filter
-    of ``conf`` (:class:`shared.lowpass.RateFilter`: the slope at the newest frame, second order
+    filter this frame), the difference θ_i(t) − θ_i(t_prev) wrapped into [−π, π) goes through the
+    rate filter of ``conf`` (:class:`shared.lowpass.RateFilter`: the slope at the newest frame, second order
     where the previous difference was usable too, low-passed at ``rate_cutoff_hz`` plus
     ``rate_beta`` × the angle's speed). Anywhere else θ̇_i = 0 and its filter restarts; :meth:`reset`
     (a filter reset) zeroes every rate. The output is always finite.
@@ -338,7 +333,7 @@ class AngleRates:
         usable = valid & self._valid & ~(ANGLE_KEYPOINTS & fresh).any(axis=1)
         if dt > 0.0 and usable.any():
             step = theta - self._theta
-            step -= _TWO_PI * np.floor((step + math.pi) / _TWO_PI)  # wrap_2pi, per angle
+            step -= _TWO_PI * np.floor((step + math.pi) / _TWO_PI)  # into [−π, π), per angle
             self.filter.update(dt, step, usable)
         else:
             self.filter.reset(~usable)
