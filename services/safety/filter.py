@@ -58,29 +58,20 @@ robot than the hair at q_cbf:
    it can retreat), stage 2 aims at ū, the box's point nearest rest, instead of u_ref: the robot
    does not go on imitating; it retreats as far as stage 1 requires. This is ISO/TS 15066 speed
    and separation monitoring: once the separation cannot be kept, the robot initiates a
-   protective stop instead of continuing its task (here keeping the retreat stage 1 requires).
-   With ``on_intrusion = "stop_on_give_way"`` (opt-in) it does not retreat either: both stages
-   are solved again with every robot–person row at its floor, b_i ← min(b_i, 0), aiming at ū, so
-   the robot brakes to rest within the acceleration bound and closes on no perceived capsule (the
-   stops below; the slacks reported are the first solve's, the person rows that could not be
-   honoured). A retreat the rows cannot fully give is a fast motion along normals of capsules
-   seen a camera latency ago, and it moves the robot's other surfaces with it: on a person
-   stepping sideways across the robot while punching (a test variant of a development clip) the
-   waist, retreating the torso from one perceived forearm at up to 1.6 rad/s, swung the hand
-   into the true upper arm at 0.3 m/s while the perceived one was 130 mm away. Measured (README
-   "The intrusion stop"; with the person swept ahead): robot-caused contact steps on 40 test
-   variants 174 → 12, none on the development set either way; but a robot that never dodges is
-   walked and swung into (+17 % contact steps on the variants), in the paper's side-by-side arm
-   raise the person's arm sweeping past meets the still robot (680 contact steps instead of 0),
-   and with a noisy camera robot-caused steps rise 22 → 166, so it is not the default. The
-   imitation target is then typically radians away (the person blocks it), so
-   u_ref = q̇_nom + K (q_nom − q_cbf) asks for the velocity bounds (15–20 rad/s on the sword clip
-   facing the robot), and the freedom the rows leave (directions tangential to the perceived
-   capsules, the other arm) was spent sweeping the robot's
-   links at full speed past a person standing inside its reach, known only as they were 60 ms
-   earlier: in 511 of that run's 646 robot-caused contact steps the perceived row of the touching
-   link did not close, a rotating link's other surface points or the true capsule did. Only stage
-   2's objective changes, so the feasibility argument below is unchanged.
+   protective stop instead of continuing its task. Why: the imitation target is then typically
+   radians away (the person blocks it), so u_ref asks for the velocity bounds, and the freedom the
+   rows leave (directions tangential to the perceived capsules, the other arm) swept the robot's
+   links at full speed past a person known only as they were a camera latency earlier (README
+   "The delay-aware look-ahead, and what still fails"). With ``on_intrusion =
+   "stop_on_give_way"`` (opt-in) it does not retreat either: both stages are solved again with
+   every robot–person row at its floor, b_i ← min(b_i, 0), aiming at ū, so the robot brakes to
+   rest within the acceleration bound and closes on no perceived capsule (the slacks reported are
+   the first solve's, the person rows that could not be honoured). A retreat the rows cannot fully
+   give is a fast motion along normals of capsules seen a camera latency ago that moves the
+   robot's other surfaces with it; a robot that never retreats is instead walked and swung into,
+   and with a noisy camera its servos creep into the person, so it is not the default (measured:
+   README "The intrusion stop"). Only stage 2's objective changes, so the feasibility argument
+   below is unchanged.
 
 **Protective stop at the robot's fixed body.** A robot–person row of a robot capsule that no
 joint moves (a thigh: A_i = 0) cannot be honoured by any u once it asks for a positive rate,
