@@ -113,8 +113,34 @@ def test_noise_and_dropout_reproduce_with_a_seed_and_noise_runs_along_the_viewin
     assert np.linalg.norm(shift, axis=1).min() > 0
 
 
+def test_a_late_camera_delays_frames_now_and_then_in_order_and_changes_nothing_else(tmp_path: Path) -> None:
+    """--latency-jitter-ms: every state later than frame time + latency by an exponential extra delay
+    of the given mean, still in order; the same seed gives the same arrivals, and the noise and
+    dropout (their own random stream) are the same as without jitter; the safety loop uses the
+    newest state *arrived*, so a late frame holds the one before it longer."""
+    path = write_recording(tmp_path / "raise.npz", raise_recording(4.0))
+    conf = evaluation_config(str(path), None, "recorded", None)
+    source = open_input(conf)
+    steady = CameraModel(latency_s=0.06, depth_noise_m=0.03, dropout=0.1, seed=4)
+    late = CameraModel(latency_s=0.06, depth_noise_m=0.03, dropout=0.1, seed=4, jitter_s=0.03)
+    on_time, jittered = perceive(conf, source, steady), perceive(conf, source, late)
+    extra = jittered.t - on_time.t
+    assert (extra >= -1e-12).all() and (np.diff(jittered.t) >= 0.0).all()
+    assert 0.015 < extra.mean() < 0.06 and extra.max() > 0.06  # a mean of 30 ms, some frames much later
+    np.testing.assert_array_equal(jittered.t, perceive(conf, source, late).t)
+    for a, b in zip(on_time.states, jittered.states, strict=True):
+        np.testing.assert_array_equal(a.keypoints, b.keypoints)  # the same noise and dropout
+    assert late.settings()["latency_jitter_ms"] == 30.0 and steady.settings()["latency_jitter_ms"] == 0.0
+    np.testing.assert_array_equal(steady.arrivals(np.arange(5) / 30), np.arange(5) / 30 + 0.06)
+    kinematics = RobotKinematics(configured_robot_spec(conf))
+    episode = run_episode(conf, jittered, true_person_of(conf, source, kinematics), enforce=True, kinematics=kinematics)
+    expected = np.searchsorted(jittered.t, episode.t + 1e-9, side="right") - 1
+    np.testing.assert_array_equal(episode.human, expected)
+
+
 def test_camera_model_refuses_out_of_range_values() -> None:
-    for bad in ({"latency_s": -0.01}, {"depth_noise_m": -1.0}, {"dropout": 1.0}):
+    for bad in ({"latency_s": -0.01}, {"depth_noise_m": -1.0}, {"dropout": 1.0}, {"jitter_s": -0.001},
+                {"jitter_s": 1.5}):
         with pytest.raises(ValueError):
             CameraModel(**bad)
 

@@ -8,8 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.safety.nominal import NominalTrack
+from services.safety.nominal import NominalTrack, frame_stamp
 from shared.config import TargetPath
+from tests.support.messages import human_state
 
 Q_MIN, Q_MAX = np.full(3, -1.0), np.full(3, 1.0)
 FRAME = 1 / 30
@@ -134,3 +135,20 @@ def test_the_same_state_again_never_extrapolates_further(path: TargetPath) -> No
     q, dq = track.at(3.01)
     np.testing.assert_allclose(q, FRAME)
     assert (dq == 0).all()
+
+
+def test_a_frame_that_arrives_late_with_the_next_one_still_gets_one_frame_period() -> None:
+    """A camera late now and then: two states published a millisecond apart after a stall. Their
+    frame stamps (capture times) are a frame period apart, so the newest is extrapolated for a full
+    period, where their publication stamps would have allowed 1 ms (a staircase until the next)."""
+    late = human_state().model_copy(update={"stamp": 5.200, "capture_stamp": 3.000})
+    next_one = late.model_copy(update={"stamp": 5.201, "capture_stamp": 3.000 + FRAME})
+    assert frame_stamp(next_one) - frame_stamp(late) == pytest.approx(FRAME)
+    assert frame_stamp(late.model_copy(update={"capture_stamp": None})) == 5.200  # a source without one
+    track = NominalTrack(np.zeros(3))
+    for state, since in ((late, 2.0), (next_one, 2.001)):
+        track.update(np.zeros(3), np.ones(3), frame_stamp(state), since, 0.05, Q_MIN, Q_MAX, JUMP)
+    q, dq = track.at(2.001 + FRAME / 2)
+    np.testing.assert_allclose(q, np.full(3, FRAME / 2))
+    np.testing.assert_allclose(dq, 1.0)
+    np.testing.assert_allclose(track.at(2.001 + 1.0)[0], np.full(3, FRAME))  # then holds, one period ahead

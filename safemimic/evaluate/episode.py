@@ -38,7 +38,7 @@ from services.executor.mujoco.executor import MujocoExecutor
 from services.executor.mujoco.model import PDGains
 from services.safety.assembly import SafetyPipeline, build_pipeline, make_geometry
 from services.safety.human_memory import HumanMemory
-from services.safety.nominal import NominalTrack
+from services.safety.nominal import NominalTrack, frame_stamp
 from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import PairSet
 from shared.config import StackConfig
@@ -216,7 +216,8 @@ def run_episode(
                     seen.barrier.set_external(*memory.capsules(safety.pairs.n_external, use_velocity, stale=now_stale))
                 if not now_stale:  # stale: the safety service stops imitating (q_nom = q_cbf)
                     r = safety.retargeter
-                    nominal.update(*r.track(state), state.stamp, human.t[newest], horizon, r.q_min, r.q_max, path)
+                    nominal.update(*r.track(state), frame_stamp(state), human.t[newest], horizon, r.q_min, r.q_max,
+                                   path)
                 if newest != applied:
                     sim.set_human(state.capsules, state.capsule_radii, state.capsule_valid, PERCEIVED_PERSON)
                 applied, stale = newest, now_stale

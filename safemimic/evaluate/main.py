@@ -57,7 +57,7 @@ def summary_table(metrics: dict[str, Any]) -> str:
 def camera_model(args: argparse.Namespace) -> CameraModel:
     """The perceived person's corruption from the command line (ValueError out of range)."""
     return CameraModel(latency_s=args.latency_ms / 1e3, depth_noise_m=args.depth_noise_m, dropout=args.dropout,
-                       seed=args.seed)
+                       seed=args.seed, jitter_s=args.latency_jitter_ms / 1e3)
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
@@ -70,7 +70,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         "The TRUE person is the recording as recorded (no filter), interpolated to the control rate: MuJoCo's "
         "person follows it and every true_* metric is measured against it, at the simulated joints, on every "
         "robot surface. The PERCEIVED person is what the safety layer gets: the same skeleton delayed by "
-        "--latency-ms, optionally noisy (--depth-noise-m, --dropout, --seed), then filtered as the perception "
+        "--latency-ms (--latency-jitter-ms: late now and then), optionally noisy (--depth-noise-m, --dropout, --seed), then filtered as the perception "
         "service does.\n\n"
         "Writes metrics.json, contacts.json, joints.png, barriers.png and snapshot.png into --out; with --suite "
         "one such folder per clip and placement plus summary.json, summary.md and summary.png; summary.md ends "
@@ -96,13 +96,17 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
                         help="camera latency of the perceived person (default 60: one 30 Hz frame of exposure and "
                         "readout ≈ 33 ms + pose inference ≈ 20–30 ms on this CPU + transport); 0 without noise "
                         "gives the stack's perceived inputs with no delay")
+    parser.add_argument("--latency-jitter-ms", type=float, default=0.0, metavar="MS",
+                        help="a camera late now and then: each frame arrives later by an exponentially distributed "
+                        "extra delay of this mean, never before the frame before it (default 0: every frame "
+                        "--latency-ms late)")
     parser.add_argument("--depth-noise-m", type=float, default=0.0, metavar="SIGMA",
                         help="Gaussian depth noise per frame along the camera's viewing rays "
                         "(perception.camera.extrinsics): a common shift of the skeleton (σ) plus a per-keypoint "
                         "part (σ/2); default 0")
     parser.add_argument("--dropout", type=float, default=0.0, metavar="P",
                         help="each keypoint missing in a frame with probability P (default 0)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of noise and dropout (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of noise, dropout and jitter (default 0)")
     parser.add_argument("--seconds", type=float, metavar="S",
                         help="evaluate this long (default: the whole recording / one period of the scenario; "
                         "longer loops it)")
@@ -160,7 +164,8 @@ def run(args: argparse.Namespace) -> int:
     metrics = write_outputs(evaluation, Path(args.out), rrd)
     print(f"{evaluation.source.name}: {metrics['input']['seconds']:g} s, "
           f"{metrics['input']['control_steps']} control steps, robot model {metrics['input']['robot_model']}, "
-          f"camera latency {metrics['input']['latency_ms']:g} ms")
+          f"camera latency {metrics['input']['latency_ms']:g} ms"
+          + (f" + jitter (mean) {metrics['input']['latency_jitter_ms']:g} ms" if metrics['input']['latency_jitter_ms'] else ""))
     print(summary_table(metrics))
     print(f"wrote {args.out}/metrics.json, contacts.json, joints.png, barriers.png, snapshot.png"
           + (f"; recording {rrd} (open: rerun {rrd})" if rrd is not None else ""))

@@ -49,16 +49,22 @@ DEFAULT_LATENCY_S = 0.060
 @dataclass(frozen=True)
 class CameraModel:
     """How the perceived person differs from the true one: delay (s), depth noise σ (m), dropout
-    probability, random seed. Raises ValueError for values outside their ranges."""
+    probability, random seed, and ``jitter_s``: the mean (s) of an extra delay per frame,
+    exponentially distributed (a camera late now and then: inference or transport stalling; most
+    frames a little late, a few by several times the mean), each frame still arriving after the
+    one before it (a publisher's order is kept). Raises ValueError for values outside their ranges."""
 
     latency_s: float = DEFAULT_LATENCY_S
     depth_noise_m: float = 0.0
     dropout: float = 0.0
     seed: int = 0
+    jitter_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.latency_s <= 2.0:
             raise ValueError(f"latency must be in [0, 2000] ms, got {1e3 * self.latency_s:g} ms")
+        if not 0.0 <= self.jitter_s <= 1.0:
+            raise ValueError(f"latency jitter must be in [0, 1000] ms, got {1e3 * self.jitter_s:g} ms")
         if not 0.0 <= self.depth_noise_m <= 1.0:
             raise ValueError(f"depth noise must be in [0, 1] m, got {self.depth_noise_m:g}")
         if not 0.0 <= self.dropout < 1.0:
@@ -67,7 +73,18 @@ class CameraModel:
     def settings(self) -> dict[str, float | int]:
         """The ``input`` keys of metrics.json."""
         return {"latency_ms": round(1e3 * self.latency_s, 6), "depth_noise_m": self.depth_noise_m,
-                "dropout": self.dropout, "seed": self.seed}
+                "dropout": self.dropout, "seed": self.seed, "latency_jitter_ms": round(1e3 * self.jitter_s, 6)}
+
+    def arrivals(self, frame_times: np.ndarray) -> np.ndarray:
+        """(F,) when each frame's state becomes available (s, on ``frame_times``' clock): its frame
+        time + ``latency_s`` + the frame's jitter, never before the previous frame's. The jitter
+        has a random stream of its own (``seed``), so noise and dropout are the same with or
+        without it; without it, exactly frame time + latency."""
+        arrival = np.asarray(frame_times, dtype=np.float64) + self.latency_s
+        if self.jitter_s > 0.0:
+            arrival = arrival + np.random.default_rng([self.seed, 1]).exponential(self.jitter_s, len(arrival))
+            arrival = np.maximum.accumulate(arrival)
+        return arrival
 
 
 @dataclass(frozen=True)
@@ -126,16 +143,19 @@ def corrupt(frame: SkeletonFrame, camera_position: np.ndarray, model: CameraMode
 
 def perceive(conf: StackConfig, source: EvaluationInput, model: CameraModel = CameraModel(latency_s=0.0)) -> HumanTrack:
     """Run the perception pipeline over every (corrupted) frame in order; each state becomes
-    available ``model.latency_s`` after its frame (``HumanState.stamp`` = that time)."""
+    available ``model.latency_s`` after its frame, later by the model's jitter
+    (:meth:`CameraModel.arrivals`; ``HumanState.stamp`` = that time, ``capture_stamp`` the frame's
+    own time, both from the first frame)."""
     pipeline = PerceptionPipeline(conf.perception, conf.human)
     rng = np.random.default_rng(model.seed)
     camera = np.asarray(conf.perception.camera.extrinsics.position, dtype=np.float64)
     noisy = model.depth_noise_m > 0.0 or model.dropout > 0.0
     t0 = source.frames[0].t
+    arrivals = model.arrivals(np.array([frame.t - t0 for frame in source.frames]))
     states = []
-    for frame in source.frames:
+    for frame, arrival in zip(source.frames, arrivals.tolist(), strict=True):
         seen = corrupt(frame, camera, model, rng) if noisy else frame
-        states.append(pipeline.step(seen).to_message(stamp=frame.t - t0 + model.latency_s))
+        states.append(pipeline.step(seen).to_message(stamp=arrival, capture_stamp=frame.t - t0))
     return HumanTrack(t=np.array([s.stamp for s in states]), states=tuple(states), counters=pipeline.counters)
 
 

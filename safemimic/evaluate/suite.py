@@ -104,7 +104,8 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     s = summary["settings"]
     lines = [
         "# Evaluation suite", "",
-        f"{len(summary['runs'])} runs; camera latency {s['latency_ms']:g} ms, depth noise {s['depth_noise_m']:g} m, "
+        f"{len(summary['runs'])} runs; camera latency {s['latency_ms']:g} ms"
+        f"{' + jitter (mean) %g ms' % s['latency_jitter_ms'] if s.get('latency_jitter_ms') else ''}, depth noise {s['depth_noise_m']:g} m, "
         f"dropout {s['dropout']:g}, seed {s['seed']}; robot model {s['robot_model'] or 'default'}.", "",
         "| clip | placement | " + " | ".join(h for h, _ in COLUMNS) + " |",
         "|---|---|" + "---|" * len(COLUMNS),

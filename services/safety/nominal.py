@@ -9,9 +9,11 @@ available at t_s makes the path
     q_nom(t) = q₀ + v · clip(t − t_s, 0, T),   q̇_nom(t) = v while t − t_s < T, else 0,
     q_end = Π_[q_min, q_max]( q + q̇ T ),
 
-with T one frame period — the interval between the stamps of the newest two states, at most
-``safety.extrapolate_max_s`` (0 turns this off: a staircase; the first state, and a state with the
-same stamp, are never extrapolated further than before) — and, by ``safety.target_path``:
+with T one frame period — the interval between the frame stamps of the newest two states
+(:func:`frame_stamp`: when each frame was taken, so a camera late now and then, whose states arrive
+in bunches after a stall, still gets one period per state), at most ``safety.extrapolate_max_s``
+(0 turns this off: a staircase; the first state, and a state with the same stamp, are never
+extrapolated further than before) — and, by ``safety.target_path``:
 
 * ``jump`` (the default): q_nom(t) = Π(q + q̇ · clip(t − t_s, 0, T)), q̇_nom = q̇ (0 where Π clips):
   q_nom jumps to the newest state at each frame and is extrapolated from there by the state's own
@@ -43,6 +45,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.config import TargetPath
+from shared.messages import HumanState
+
+
+def frame_stamp(state: HumanState) -> float:
+    """When ``state``'s camera frame was taken (s, the perception's clock): its ``capture_stamp``, or
+    its publication ``stamp`` from a source that gives none. Two of them are a frame period apart
+    whatever delays the frames met after the capture (inference, transport), where the publication
+    stamps of a late frame and the one after it may be a few milliseconds apart."""
+    return state.stamp if state.capture_stamp is None else state.capture_stamp
 
 
 @dataclass(frozen=True)

@@ -58,7 +58,7 @@ import numpy as np
 from services.safety.assembly import SafetyPipeline, build_pipeline, make_retargeter
 from services.safety.filter import FilterParams, StepResult, binding_rows
 from services.safety.human_memory import HumanMemory
-from services.safety.nominal import NominalTrack
+from services.safety.nominal import NominalTrack, frame_stamp
 from services.safety.watchdogs import Watchdogs
 from shared.bus import Bus, Latest, Newest, Received
 from shared.realtime import realtime
@@ -379,7 +379,7 @@ class SafetyService(ScheduledService):
         if not stale:  # stale: the tick stops imitating (q_nom = q_cbf)
             retargeter = self.pipeline.retargeter
             self._q_nom, dq_nom = retargeter.track(message)
-            self._nominal.update(self._q_nom, dq_nom, message.stamp, received.received,
+            self._nominal.update(self._q_nom, dq_nom, frame_stamp(message), received.received,
                                  safety.extrapolate_max_s, retargeter.q_min, retargeter.q_max, safety.target_path)
         self._human_used, self._human_stale, self._human_dirty = received, stale, False
         self.watchdogs.watch("human_lost", self._memory.lost, f"held: {', '.join(self._memory.lost_capsules)}")
