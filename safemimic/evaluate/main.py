@@ -23,7 +23,7 @@ from typing import Any
 
 from safemimic.evaluate.evaluation import evaluate, evaluation_config, write_outputs
 from safemimic.evaluate.metrics import RUN_KEYS
-from safemimic.evaluate.person import DEFAULT_LATENCY_S, CameraModel
+from safemimic.evaluate.person import DEFAULT_LATENCY_S, CameraModel, latency_text
 from safemimic.evaluate.progress import ProgressBar
 from services.executor.mujoco.model import SimModelError
 from services.perception.scenarios import SCENARIOS
@@ -70,8 +70,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         "The TRUE person is the recording as recorded (no filter), interpolated to the control rate: MuJoCo's "
         "person follows it and every true_* metric is measured against it, at the simulated joints, on every "
         "robot surface. The PERCEIVED person is what the safety layer gets: the same skeleton delayed by "
-        "--latency-ms (--latency-jitter-ms: late now and then), optionally noisy (--depth-noise-m, --dropout, --seed), then filtered as the perception "
-        "service does.\n\n"
+        "--latency-ms (--latency-jitter-ms: late now and then), optionally noisy (--depth-noise-m, --dropout, "
+        "--seed), then filtered as the perception service does.\n\n"
         "Writes metrics.json, contacts.json, joints.png, barriers.png and snapshot.png into --out; with --suite "
         "one such folder per clip and placement plus summary.json, summary.md and summary.png; summary.md ends "
         "with the goals: how many runs meet each safety and imitation goal, which fail, and which of those "
@@ -164,8 +164,7 @@ def run(args: argparse.Namespace) -> int:
     metrics = write_outputs(evaluation, Path(args.out), rrd)
     print(f"{evaluation.source.name}: {metrics['input']['seconds']:g} s, "
           f"{metrics['input']['control_steps']} control steps, robot model {metrics['input']['robot_model']}, "
-          f"camera latency {metrics['input']['latency_ms']:g} ms"
-          + (f" + jitter (mean) {metrics['input']['latency_jitter_ms']:g} ms" if metrics['input']['latency_jitter_ms'] else ""))
+          f"camera latency {latency_text(metrics['input'])}")
     print(summary_table(metrics))
     print(f"wrote {args.out}/metrics.json, contacts.json, joints.png, barriers.png, snapshot.png"
           + (f"; recording {rrd} (open: rerun {rrd})" if rrd is not None else ""))

@@ -26,6 +26,7 @@ With ``latency_s = 0`` and no noise the perceived person is the pipeline's plain
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -85,6 +86,13 @@ class CameraModel:
             arrival = arrival + np.random.default_rng([self.seed, 1]).exponential(self.jitter_s, len(arrival))
             arrival = np.maximum.accumulate(arrival)
         return arrival
+
+
+def latency_text(settings: dict[str, Any]) -> str:
+    """The camera delay of :meth:`CameraModel.settings` (or an ``input`` of metrics.json) in words:
+    "60 ms", or "60 ms + jitter (mean) 30 ms"."""
+    jitter = settings.get("latency_jitter_ms", 0.0)
+    return f"{settings['latency_ms']:g} ms" + (f" + jitter (mean) {jitter:g} ms" if jitter else "")
 
 
 @dataclass(frozen=True)

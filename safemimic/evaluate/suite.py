@@ -32,7 +32,7 @@ from typing import Any
 
 from safemimic.evaluate.fidelity import LAG_STAGES
 from safemimic.evaluate.goals import goal_report, goals_markdown
-from safemimic.evaluate.person import CameraModel
+from safemimic.evaluate.person import CameraModel, latency_text
 from safemimic.evaluate.progress import ProgressBar
 
 #: (header, what it shows) of summary.md's columns after clip and placement.
@@ -104,8 +104,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     s = summary["settings"]
     lines = [
         "# Evaluation suite", "",
-        f"{len(summary['runs'])} runs; camera latency {s['latency_ms']:g} ms"
-        f"{' + jitter (mean) %g ms' % s['latency_jitter_ms'] if s.get('latency_jitter_ms') else ''}, depth noise {s['depth_noise_m']:g} m, "
+        f"{len(summary['runs'])} runs; camera latency {latency_text(s)}, depth noise {s['depth_noise_m']:g} m, "
         f"dropout {s['dropout']:g}, seed {s['seed']}; robot model {s['robot_model'] or 'default'}.", "",
         "| clip | placement | " + " | ".join(h for h, _ in COLUMNS) + " |",
         "|---|---|" + "---|" * len(COLUMNS),
@@ -186,7 +185,7 @@ def plot_summary(summary: dict[str, Any], path: Path) -> Path:
     for ax in axes.flat:
         ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
         ax.grid(alpha=0.3, axis="y")
-    fig.suptitle(f"Evaluation suite: {len(runs)} runs, camera latency {s['latency_ms']:g} ms", fontsize=11)
+    fig.suptitle(f"Evaluation suite: {len(runs)} runs, camera latency {latency_text(s)}", fontsize=11)
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
