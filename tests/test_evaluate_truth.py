@@ -16,7 +16,7 @@ from safemimic.evaluate.evaluation import evaluation_config, true_person_of
 from safemimic.evaluate.fidelity import (
     ACQUIRE_S, best_delay, delayed, direction_errors, fidelity, judged_from, lag_ms,
 )
-from safemimic.evaluate.person import CameraModel, corrupt, interpolate_skeleton, perceive
+from safemimic.evaluate.person import CameraModel, corrupt, interpolate_skeleton, latency_text, perceive
 from safemimic.evaluate.source import EvaluationInput, open_input
 from safemimic.evaluate.truth import CLOSING_SPEED, TruthProbe, fixed_bodies
 from services.executor.mujoco.model import PDGains
@@ -131,6 +131,7 @@ def test_a_late_camera_delays_frames_now_and_then_in_order_and_changes_nothing_e
     for a, b in zip(on_time.states, jittered.states, strict=True):
         np.testing.assert_array_equal(a.keypoints, b.keypoints)  # the same noise and dropout
     assert late.settings()["latency_jitter_ms"] == 30.0 and steady.settings()["latency_jitter_ms"] == 0.0
+    assert latency_text(late.settings()) == "60 ms + jitter (mean) 30 ms" and latency_text(steady.settings()) == "60 ms"
     np.testing.assert_array_equal(steady.arrivals(np.arange(5) / 30), np.arange(5) / 30 + 0.06)
     kinematics = RobotKinematics(configured_robot_spec(conf))
     episode = run_episode(conf, jittered, true_person_of(conf, source, kinematics), enforce=True, kinematics=kinematics)
