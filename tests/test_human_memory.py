@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from services.safety.human_memory import HumanMemory, external_capsules
+from services.safety.human_memory import FrameLateness, HumanMemory, external_capsules
 from shared.messages import HumanState
 from shared.geometry import segment_closest_points
 from shared.names import CAPSULE_NAMES
@@ -132,3 +133,35 @@ def test_the_swept_capsule_encloses_the_seen_and_the_predicted_capsule_on_random
                     point = start[0] + s * (start[1] - start[0])
                     gap = segment_closest_points(swept.endpoints[i, 0], swept.endpoints[i, 1], point, point).distance[0]
                     assert gap + message.capsule_radii[i] <= swept.radii[i] + 1e-12, (trial, i, s)
+
+
+def test_a_state_published_late_after_its_capture_is_swept_further_by_its_lateness() -> None:
+    """FrameLateness: a camera on time (the same capture → publication delay every frame) has
+    lateness 0, so the sweep is human_predict_s's alone; a frame published 80 ms later than the
+    fastest of the window is swept for τ + 0.08 s (1 m/s: the radius grows by 0.04 m more); the same
+    state again counts once; a state without a capture stamp or with a negative delay has none, and
+    the fastest delay is forgotten after the window (a perception restarted at another pace)."""
+    memory, tau = HumanMemory(), 0.093
+    valid = np.ones(7, bool)
+    for k in range(10):  # on time: 60 ms from capture to publication every frame
+        memory.update(state(1.0, valid).model_copy(update={"stamp": 1.06 + k / 30, "capture_stamp": 1.0 + k / 30}),
+                      k / 30, HOLD_S)
+        assert memory.lateness == 0.0
+    on_time = memory.capsules(7, True, tau)
+    np.testing.assert_allclose(on_time.sweep, 0.5 * tau)  # |v| τ / 2 at 1 m/s
+    late = state(1.0, valid).model_copy(update={"stamp": 2.0 + 0.14, "capture_stamp": 2.0})
+    for _ in range(2):  # the same state twice: counted once, the same result
+        memory.update(late, 1.0, HOLD_S)
+        assert memory.lateness == pytest.approx(0.08)
+        np.testing.assert_allclose(memory.capsules(7, True, tau).sweep, 0.5 * (tau + 0.08))
+    np.testing.assert_allclose(memory.capsules(7, True, tau, stale=True).radii, late.capsule_radii)  # stale: none
+    for capture in (None, 5.0, float("nan")):  # no capture stamp, published before its capture, not finite
+        memory.update(state(1.0, valid).model_copy(update={"stamp": 3.0, "capture_stamp": capture}), 1.1, HOLD_S)
+        assert memory.lateness == 0.0
+    window = FrameLateness(window=3)
+    values = [window.update(state(1.0, valid).model_copy(update={"stamp": 10.0 + k + delay, "capture_stamp": 10.0 + k}))
+              for k, delay in enumerate((0.06, 0.20, 0.20, 0.20))]
+    assert values[:3] == pytest.approx([0.0, 0.14, 0.14])
+    assert values[3] == pytest.approx(0.0)  # the 60 ms frame left the window: 200 ms is this perception's pace now
+    first = FrameLateness().update(state(1.0, valid).model_copy(update={"stamp": 9.0, "capture_stamp": 1.0}))
+    assert first == 0.0  # the first state is its own usual delay

@@ -8,7 +8,9 @@ received at time ``now``:
 
 - a slot valid in the message is used as it is (with its measured velocity when asked for), or
   swept along that velocity for ``safety.human_predict_s`` (the message shows the person a camera
-  latency and a held frame ago: :func:`swept_capsules`);
+  latency and a held frame ago: :func:`swept_capsules`), and further by the message's lateness
+  (:class:`FrameLateness`: how much longer than usual it took from its capture to its publication,
+  an inference or a camera stalling; the person moved on meanwhile);
 - a slot the message marks invalid that was valid within ``hold_s`` (``safety.lost_human_hold_s``)
   is *lost*: its remembered capsule stays in the barrier, without a velocity term (the person may
   still be there), and while any slot is lost the robot stops imitating (q_nom = q_cbf);
@@ -24,6 +26,8 @@ with the same message and time gives the same result.
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from typing import NamedTuple
 
 import numpy as np
@@ -88,6 +92,48 @@ def swept_capsules(endpoints: np.ndarray, radii: np.ndarray, velocities: np.ndar
     return endpoints + half, radii + sweep, sweep
 
 
+#: States over which :class:`FrameLateness` finds the usual delay: ≈ 10 s of a 30 Hz camera, so a
+#: perception restarted with another pace is learnt again within seconds.
+LATENESS_WINDOW = 300
+#: The most lateness counted (s): a state published later still is counted this late (the person
+#: swept ahead by their velocity for a second already covers wherever they can be).
+MAX_LATENESS_S = 1.0
+#: A delay within this (s) of the usual one is on time (lateness 0): the stamps' own jitter, and the
+#: rounding of times that differ by the same constant latency.
+ON_TIME_S = 1e-3
+
+
+class FrameLateness:
+    """How much later than usual a state was published after its frame was taken (s).
+
+    A state's delay d = ``stamp − capture_stamp`` (both the perception's clock, so the safety
+    service may run on another host) is the pose inference and whatever else came between the
+    camera and the publication; the lateness of the newest state is d minus the smallest d of the
+    last :data:`LATENESS_WINDOW` states (0 below :data:`ON_TIME_S`), at most :data:`MAX_LATENESS_S`. A camera on time has
+    lateness 0 (the delay it usually has is what ``safety.human_predict_s`` and the look-ahead are
+    set for); a frame published 80 ms late after an inference stall has 0.08 s. A state without a
+    ``capture_stamp``, or with a delay that is negative or not finite, has lateness 0 and is not
+    counted. The same state again (stamp and capture stamp) is counted once."""
+
+    def __init__(self, window: int = LATENESS_WINDOW) -> None:
+        self._delays: deque[float] = deque(maxlen=window)
+        self._last: tuple[float, float] | None = None
+
+    def update(self, message: HumanState) -> float:
+        """The lateness of ``message`` (s), counting its delay among the window's."""
+        capture = message.capture_stamp
+        if capture is None:
+            return 0.0
+        delay = message.stamp - capture
+        if not (math.isfinite(delay) and delay >= 0.0):
+            return 0.0
+        if (message.stamp, capture) != self._last:
+            self._delays.append(delay)
+            self._last = (message.stamp, capture)
+        late = delay - min(self._delays)
+        return 0.0 if late < ON_TIME_S else min(late, MAX_LATENESS_S)
+
+
 class HumanMemory:
     """The last valid capsule of every slot and the rule of the module doc (:meth:`update`, :meth:`capsules`)."""
 
@@ -99,6 +145,9 @@ class HumanMemory:
         self._valid = np.zeros(n, bool)  # in the barrier: valid in the newest message, or lost
         self._lost = np.zeros(n, bool)  # remembered, not valid in the newest message
         self._velocities: np.ndarray | None = None  # the newest message's; zero on lost slots
+        self._lateness = FrameLateness()
+        #: The newest message's lateness (s, :class:`FrameLateness`): the sweep ahead grows by it.
+        self.lateness = 0.0
 
     @property
     def lost(self) -> bool:
@@ -113,6 +162,7 @@ class HumanMemory:
     def update(self, message: HumanState, now: float, hold_s: float) -> None:
         """Take a fresh ``message`` received at ``now`` (s, the caller's clock); a slot invalid in it
         stays lost while it was valid at most ``hold_s`` (s) before ``now``."""
+        self.lateness = self._lateness.update(message)
         seen = message.capsule_valid
         self._endpoints[seen], self._radii[seen], self._last_valid[seen] = message.capsules[seen], message.capsule_radii[seen], now
         self._lost = ~seen & (now - self._last_valid <= hold_s)
@@ -125,12 +175,13 @@ class HumanMemory:
                  stale: bool = False) -> ExternalCapsules:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
         ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s``
-        τ > 0 (s): each slot valid in the newest message swept ahead by :func:`swept_capsules` (a lost
-        slot, whose velocity is 0, is unchanged). ``stale``: the newest message is older than
+        τ > 0 (s): each slot valid in the newest message swept ahead by :func:`swept_capsules` for τ
+        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged). ``stale``: the newest message is older than
         ``safety.human_timeout_s`` (or its source is gone): the capsules as last measured, neither
         velocity nor sweep (a velocity that old says nothing of where the person is now)."""
         velocities = self._velocities if use_velocity and not stale else None
         if predict_s > 0.0 and not stale and self._velocities is not None:
-            endpoints, radii, sweep = swept_capsules(self._endpoints, self._radii, self._velocities, predict_s)
+            endpoints, radii, sweep = swept_capsules(self._endpoints, self._radii, self._velocities,
+                                                     predict_s + self.lateness)
             return padded(n_external, endpoints, radii, self._valid, velocities, sweep)
         return padded(n_external, self._endpoints, self._radii, self._valid, velocities)
