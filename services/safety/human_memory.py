@@ -109,8 +109,8 @@ class FrameLateness:
     A state's delay d = ``stamp − capture_stamp`` (both the perception's clock, so the safety
     service may run on another host) is the pose inference and whatever else came between the
     camera and the publication; the lateness of the newest state is d minus the smallest d of the
-    last :data:`LATENESS_WINDOW` states (0 below :data:`ON_TIME_S`), at most :data:`MAX_LATENESS_S`. A camera on time has
-    lateness 0 (the delay it usually has is what ``safety.human_predict_s`` and the look-ahead are
+    last :data:`LATENESS_WINDOW` states (0 below :data:`ON_TIME_S`), at most :data:`MAX_LATENESS_S`.
+    A camera on time has lateness 0 (the delay it usually has is what ``safety.human_predict_s`` and the look-ahead are
     set for); a frame published 80 ms late after an inference stall has 0.08 s. A state without a
     ``capture_stamp``, or with a delay that is negative or not finite, has lateness 0 and is not
     counted. The same state again (stamp and capture stamp) is counted once."""
@@ -176,9 +176,10 @@ class HumanMemory:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
         ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s``
         τ > 0 (s): each slot valid in the newest message swept ahead by :func:`swept_capsules` for τ
-        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged). ``stale``: the newest message is older than
-        ``safety.human_timeout_s`` (or its source is gone): the capsules as last measured, neither
-        velocity nor sweep (a velocity that old says nothing of where the person is now)."""
+        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged). ``stale``: the
+        newest message is older than ``safety.human_timeout_s`` (or its source is gone): the capsules as
+        last measured, neither velocity nor sweep (a velocity that old says nothing of where the person is
+        now)."""
         velocities = self._velocities if use_velocity and not stale else None
         if predict_s > 0.0 and not stale and self._velocities is not None:
             endpoints, radii, sweep = swept_capsules(self._endpoints, self._radii, self._velocities,
