@@ -110,10 +110,11 @@ class FrameLateness:
     service may run on another host) is the pose inference and whatever else came between the
     camera and the publication; the lateness of the newest state is d minus the smallest d of the
     last :data:`LATENESS_WINDOW` states (0 below :data:`ON_TIME_S`), at most :data:`MAX_LATENESS_S`.
-    A camera on time has lateness 0 (the delay it usually has is what ``safety.human_predict_s`` and the look-ahead are
-    set for); a frame published 80 ms late after an inference stall has 0.08 s. A state without a
-    ``capture_stamp``, or with a delay that is negative or not finite, has lateness 0 and is not
-    counted. The same state again (stamp and capture stamp) is counted once."""
+    A camera on time has lateness 0 (the delay it usually has is what ``safety.human_predict_s``
+    and the look-ahead are set for); a frame published 80 ms late after an inference stall has
+    0.08 s. A state without a ``capture_stamp``, or with a delay that is negative or not finite,
+    has lateness 0 and is not counted. The same state again (stamp and capture stamp) is counted
+    once."""
 
     def __init__(self, window: int = LATENESS_WINDOW) -> None:
         self._delays: deque[float] = deque(maxlen=window)
