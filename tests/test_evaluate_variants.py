@@ -1,8 +1,8 @@
 """Test variants of a recording (``python -m safemimic.evaluate.variants``): a turn in place keeps
 every keypoint's height and distance from the turning axis and ends where it began, a step-in
 carries the person along the direction they face by exactly the step, a side-step towards their
-right, a scaled person keeps the floor point below the pelvis and scales every distance; bad input
-is refused."""
+right, a scaled person keeps the floor point below the pelvis and scales every distance, a broadened
+one has its shoulders the width apart and its arms' segments unchanged; bad input is refused."""
 
 from __future__ import annotations
 
@@ -50,8 +50,8 @@ def test_a_side_step_goes_right_and_a_scaled_person_grows_about_the_floor_below_
     source = write_recording(tmp_path / "raise.npz", xyz)
     assert main([str(source), str(tmp_path / "out"), "--side-m", "0.4", "--scales", "0.8,1.25"]) == 0
     written = sorted(p.name for p in (tmp_path / "out").iterdir())
-    assert written == ["raise_scale080.npz", "raise_scale125.npz", "raise_sidestep.npz", "raise_stepin.npz",
-                       "raise_turn.npz"]
+    assert written == ["raise_scale080.npz", "raise_scale125.npz", "raise_shoulders370mm.npz", "raise_sidestep.npz",
+                       "raise_stepin.npz", "raise_turn.npz"]
     side, _ = read_recording(tmp_path / "out" / "raise_sidestep.npz")
     shift = side["xyz"][-1] - xyz[-1]
     np.testing.assert_allclose(shift, np.repeat(shift[:1], len(KEYPOINT_NAMES), axis=0), atol=1e-12)  # rigid
@@ -69,6 +69,30 @@ def test_a_side_step_goes_right_and_a_scaled_person_grows_about_the_floor_below_
     assert not list((tmp_path / "none").glob("*_scale*"))
 
 
+def test_a_broadened_or_narrowed_person_has_the_shoulders_the_width_apart_and_the_same_arms_and_body(tmp_path: Path) -> None:
+    xyz = raise_recording(2.0) + [0.3, -0.2, 0.0]
+    xyz[5, KEYPOINT_INDEX["right_shoulder"]] = np.nan  # a frame without its shoulder line: left as it is
+    source = write_recording(tmp_path / "raise.npz", xyz)
+    assert main([str(source), str(tmp_path / "out"), "--shoulder-width", "0.25"]) == 0
+    broad, _ = read_recording(tmp_path / "out" / "raise_shoulders250mm.npz")
+    out = broad["xyz"]
+    left, right = (KEYPOINT_INDEX[f"{side}_shoulder"] for side in ("left", "right"))
+    seen = np.isfinite(xyz[:, right, 0])
+    np.testing.assert_allclose(np.linalg.norm(out[seen, left] - out[seen, right], axis=1), 0.25, atol=1e-12)
+    before = np.linalg.norm(xyz[seen, left] - xyz[seen, right], axis=1)
+    assert before.min() > 0.25 + 0.05  # the synthetic person is broader (0.36 m): the variant does something
+    centre = 0.5 * (xyz[seen, left] + xyz[seen, right])
+    np.testing.assert_allclose(0.5 * (out[seen, left] + out[seen, right]), centre, atol=1e-12)  # outward, both alike
+    for side in ("left", "right"):
+        chain = [KEYPOINT_INDEX[f"{side}_{part}"] for part in ("shoulder", "elbow", "wrist")]
+        np.testing.assert_allclose(np.diff(out[:, chain], axis=1), np.diff(xyz[:, chain], axis=1), atol=1e-12)
+    others = [i for i, name in enumerate(KEYPOINT_NAMES) if not name.endswith(("shoulder", "elbow", "wrist"))]
+    np.testing.assert_array_equal(out[:, others], xyz[:, others])
+    np.testing.assert_array_equal(out[5], xyz[5])
+    assert main([str(source), str(tmp_path / "none"), "--shoulder-width", "0"]) == 0
+    assert not list((tmp_path / "none").glob("*_shoulders*"))
+
+
 def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     np.savez(tmp_path / "bad.npz", names=np.array(["head"]), xyz=np.zeros((3, 1, 3)))
     assert main([str(tmp_path / "bad.npz"), str(tmp_path / "out")]) == 2
@@ -81,3 +105,8 @@ def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.
             main([str(tmp_path / "bad.npz"), str(tmp_path / "out"), "--scales", bad])
         assert exit_.value.code == 2
         assert "scales" in capsys.readouterr().err
+    for bad in ("-0.3", "2", "wide", "nan"):
+        with pytest.raises(SystemExit) as exit_:
+            main([str(tmp_path / "bad.npz"), str(tmp_path / "out"), "--shoulder-width", bad])
+        assert exit_.value.code == 2
+        assert "shoulder" in capsys.readouterr().err

@@ -18,7 +18,12 @@ into ``OUT`` with every other field unchanged:
 - ``X_scaleNNN.npz`` for each factor s of ``--scales`` (0.85 and 1.15 by default; NNN = 100 s): the
   whole skeleton scaled by s about the floor point below the first frame's pelvis (a shorter or
   taller person doing the same motion: longer arms reach further, a taller body is closer to the
-  robot's shoulders; the motion's speeds scale with it).
+  robot's shoulders; the motion's speeds scale with it);
+- ``X_shouldersNNNmm.npz`` (``--shoulder-width``, 0.37 m by default; NNN in mm): each arm
+  (shoulder, elbow, wrist) carried outward along the frame's shoulder line so that the shoulders
+  are that far apart in every frame, everything else unchanged (a broader person, or a skeleton
+  whose shoulder keypoints sit further out, making the same motion: people's shoulders are
+  0.20–0.37 m apart, the development clips' 0.20 m; beside the robot the near arm comes closer).
 
 Then ``safemimic evaluate --suite OUT`` evaluates them like any recording. The variants are
 geometric transforms of real motion, not new recordings: they test what the development clips do
@@ -37,6 +42,10 @@ import numpy as np
 NEEDED = ("pelvis", "left_shoulder", "right_shoulder")
 #: The size factors of the scaled variants (``--scales``): a 15 % shorter and a 15 % taller person.
 SCALES = (0.85, 1.15)
+#: The shoulder width of the broadened variant (``--shoulder-width``, m): the broadest people's.
+BROAD_SHOULDERS = 0.37
+#: Each arm's keypoints, carried with its shoulder by :func:`broadened`.
+ARMS = {side: tuple(f"{side}_{part}" for part in ("shoulder", "elbow", "wrist")) for side in ("left", "right")}
 
 
 def facing(xyz: np.ndarray, names: list[str]) -> np.ndarray:
@@ -89,6 +98,25 @@ def scaled(xyz: np.ndarray, names: list[str], factor: float) -> np.ndarray:
     return centre + factor * (xyz - centre)
 
 
+def broadened(xyz: np.ndarray, names: list[str], width: float) -> np.ndarray:
+    """``xyz`` (T, K, 3) with the shoulders ``width`` (m) apart in every frame: each arm's keypoints
+    (:data:`ARMS`) carried by ½ (width − w) along the frame's shoulder line (left − right, of length
+    w), the left arm towards the left, the right arm towards the right. Arm segments keep their
+    vectors; a frame without both shoulders (or with them on top of each other) is left as it is."""
+    if not width > 0.0:
+        raise ValueError(f"a shoulder width must be > 0, got {width}")
+    line = xyz[:, names.index("left_shoulder")] - xyz[:, names.index("right_shoulder")]
+    w = np.linalg.norm(line, axis=1, keepdims=True)
+    usable = np.isfinite(w) & (w > 1e-6)
+    shift = np.where(usable, 0.5 * (width - w) * line / np.where(usable, w, 1.0), 0.0)
+    out = xyz.copy()
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        for name in ARMS[side]:
+            if name in names:
+                out[:, names.index(name)] += sign * shift
+    return out
+
+
 def read_recording(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
     """Every field of recording ``path`` and its keypoint names; ValueError when it cannot make variants."""
     with np.load(path, allow_pickle=False) as data:
@@ -109,21 +137,24 @@ def read_recording(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
 
 
 def variants(xyz: np.ndarray, names: list[str], turns: float = 1.0, step_m: float = 1.0, side_m: float = 0.5,
-             scales: tuple[float, ...] = SCALES) -> dict[str, np.ndarray]:
-    """Every variant of ``xyz`` (T, K, 3) by its file name suffix (module docstring)."""
+             scales: tuple[float, ...] = SCALES, shoulder_width: float = BROAD_SHOULDERS) -> dict[str, np.ndarray]:
+    """Every variant of ``xyz`` (T, K, 3) by its file name suffix (module docstring); no broadened
+    variant when ``shoulder_width`` is 0."""
     out = {"turn": turned(xyz, names, turns), "stepin": stepped_in(xyz, names, step_m),
            "sidestep": side_stepped(xyz, names, side_m)}
     for factor in scales:
         out[f"scale{round(100 * factor):03d}"] = scaled(xyz, names, factor)
+    if shoulder_width:
+        out[f"shoulders{round(1000 * shoulder_width):03d}mm"] = broadened(xyz, names, shoulder_width)
     return out
 
 
 def write_variants(source: Path, out: Path, turns: float = 1.0, step_m: float = 1.0, side_m: float = 0.5,
-                   scales: tuple[float, ...] = SCALES) -> list[Path]:
+                   scales: tuple[float, ...] = SCALES, shoulder_width: float = BROAD_SHOULDERS) -> list[Path]:
     """The variants of recording ``source`` written into ``out``; their paths."""
     fields, names = read_recording(source)
     written = []
-    for suffix, xyz in variants(fields["xyz"], names, turns, step_m, side_m, scales).items():
+    for suffix, xyz in variants(fields["xyz"], names, turns, step_m, side_m, scales, shoulder_width).items():
         path = out / f"{source.stem}_{suffix}.npz"
         np.savez(path, **{**fields, "xyz": xyz})
         written.append(path)
@@ -141,6 +172,17 @@ def _scales(text: str) -> tuple[float, ...]:
     return factors
 
 
+def _width(text: str) -> float:
+    """``--shoulder-width``: 0 (no broadened variant) or a width in (0, 1) m (argparse type)."""
+    try:
+        width = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 <= width < 1.0:
+        raise argparse.ArgumentTypeError(f"a shoulder width must be 0 (none) or in (0, 1) m: {text!r}")
+    return width
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m safemimic.evaluate.variants", description=__doc__.split("\n\n")[1],
@@ -154,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scales", type=_scales, default=SCALES,
                         help="comma-separated size factors of the scaled variants (default "
                         f"{','.join(map(str, SCALES))}; '' for none)")
+    parser.add_argument("--shoulder-width", type=_width, default=BROAD_SHOULDERS,
+                        help=f"shoulder width of the broadened variant, m (default {BROAD_SHOULDERS}; 0 for none)")
     args = parser.parse_args(argv)
     sources = sorted(args.source.glob("*.npz")) if args.source.is_dir() else [args.source]
     if not sources:
@@ -162,7 +206,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     try:
         for source in sources:
-            for path in write_variants(source, args.out, args.turns, args.step_m, args.side_m, args.scales):
+            for path in write_variants(source, args.out, args.turns, args.step_m, args.side_m, args.scales,
+                                       args.shoulder_width):
                 print(f"wrote {path}")
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
