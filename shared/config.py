@@ -289,6 +289,13 @@ class SafetyConfig(_Section):
         "steps, but a person's arm sweeping past meets a robot that stands still (the paper's side-by-side arm raise: "
         "680 contact steps instead of 0) and with a noisy camera 166 robot-caused steps instead of 22",
     )
+    intrusion_backout_mps: float = Field(
+        default=0.05, ge=0, le=0.25,
+        description="during the intrusion stop, while the person stands still (every capsule slower than 0.15 m/s), "
+        "each robot capsule a person capsule is inside backs out of it at up to this speed (m/s, along the pair's "
+        "normal) until no person row is inside: a person who stands in the robot's margin does not freeze it there. "
+        "0: the robot stands still until they leave. README 'Backing out from a person who stands inside'",
+    )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
     lost_human_hold_s: float = Field(
         default=2.0, gt=0, le=60,

@@ -174,7 +174,7 @@ def test_health_and_config_read(api: ApiServer) -> None:
     # the names, mapped onto the configuration explicitly
     assert set(safety) == {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_predict_s",
                            "dt", "enabled_pair_groups", "capsule_radii", "human_velocity_term",
-                           "geometry", "sphere_k", "on_intrusion", "feedforward", "target_path"}
+                           "geometry", "sphere_k", "on_intrusion", "intrusion_backout_mps", "feedforward", "target_path"}
     assert safety["dt"] == pytest.approx(1.0 / body["config"]["safety"]["rate_hz"])
     assert safety["k"] == body["config"]["safety"]["gain"] and safety["w"] == body["config"]["safety"]["weights"]
     assert set(body["retarget"]) == {"S", "b", "q_home", "theta_home", "mirror", "method"}
@@ -248,6 +248,8 @@ def test_writes_need_the_token(api: ApiServer, method: str, path: str, body: dic
         ("/api/config/safety", {"capsule_radii": {"human": {"torso": 3.0}}}, "capsule_radii"),
         ("/api/config/safety", {"human_velocity_term": "maybe"}, "human_velocity_term"),
         ("/api/config/safety", {"on_intrusion": "flee"}, "on_intrusion"),
+        ("/api/config/safety", {"intrusion_backout_mps": 0.5}, "intrusion_backout_mps"),
+        ("/api/config/safety", {"intrusion_backout_mps": -0.01}, "intrusion_backout_mps"),
         ("/api/config/safety", {"feedforward": "yes"}, "feedforward"),
         ("/api/config/safety", {"target_path": "smooth"}, "target_path"),
         ("/api/config/safety", {"rate_hz": 100.0}, "rate_hz"),
@@ -376,6 +378,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
         "capsule_radii": {"robot": {"left_forearm": 0.061, "torso": 0.12}, "human": {"torso": 0.16, "forearm": 0.055}},
         "human_velocity_term": False,
         "on_intrusion": "retreat",
+        "intrusion_backout_mps": 0.1,
         "feedforward": False,
         "target_path": "continuous",
     }
@@ -389,7 +392,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
     assert conf["safety"]["capsule_radii"] == {"left_forearm": 0.061, "torso": 0.12}
     assert conf["human"]["torso_radius"] == 0.16 and conf["human"]["forearm_radius"] == 0.055
     assert conf["human"]["thigh_radius"] == load_config(environ={}).human.thigh_radius
-    assert conf["safety"]["human_velocity_term"] is False
+    assert conf["safety"]["human_velocity_term"] is False and conf["safety"]["intrusion_backout_mps"] == 0.1
     assert conf["safety"]["feedforward"] is False and conf["safety"]["target_path"] == "continuous"
     assert api.http.get("/api/config").json()["safety"]["target_path"] == "continuous"
     assert conf["safety"]["on_intrusion"] == "retreat" and api.http.get("/api/config").json()["safety"]["on_intrusion"] == "retreat"

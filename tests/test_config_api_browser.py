@@ -147,6 +147,7 @@ def test_person_prediction_and_intrusion_response_in_the_form(page, console: Api
     form = "#safety-form "
     assert float(page.locator(form + "input[name=human_predict_s]").input_value()) == safety["human_predict_s"]
     assert page.locator(form + "select[name=on_intrusion]").input_value() == safety["on_intrusion"] == "stop"
+    assert float(page.locator(form + "input[name=intrusion_backout_mps]").input_value()) == safety["intrusion_backout_mps"]
     with FakeSafety(bus, intrusion=True, ack=False):  # the default response: a protective stop
         sync_api.expect(page.locator("#intrusion")).to_have_text("yes: the robot stops")
 
@@ -154,22 +155,27 @@ def test_person_prediction_and_intrusion_response_in_the_form(page, console: Api
     with FakeSafety(bus, intrusion=True):
         page.fill(form + "input[name=human_predict_s]", "0.05")
         page.select_option(form + "select[name=on_intrusion]", "retreat")
+        page.fill(form + "input[name=intrusion_backout_mps]", "0")
         page.click("#apply-safety")
         sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
         sync_api.expect(page.locator("#intrusion")).to_have_text("yes: the robot retreats")
     after = console.http.get("/api/config").json()
     assert (after["safety"]["human_predict_s"], after["safety"]["on_intrusion"]) == (0.05, "retreat")
+    assert after["safety"]["intrusion_backout_mps"] == 0.0
     changed = console.http.get("/api/config/history").json()["entries"][0]
     assert "safety.human_predict_s" in str(changed) and "safety.on_intrusion" in str(changed)
+    assert "safety.intrusion_backout_mps" in str(changed)
     assert "safety.gamma" not in str(changed)  # only what was edited is sent
 
     with FakeSafety(bus):  # back to the default, from the form
         page.fill(form + "input[name=human_predict_s]", str(safety["human_predict_s"]))
         page.select_option(form + "select[name=on_intrusion]", "stop")
+        page.fill(form + "input[name=intrusion_backout_mps]", str(safety["intrusion_backout_mps"]))
         page.click("#apply-safety")
         sync_api.expect(page.locator("#result")).to_contain_text("applied by the safety service")
     restored = console.http.get("/api/config").json()["safety"]
     assert (restored["human_predict_s"], restored["on_intrusion"]) == (safety["human_predict_s"], "stop")
+    assert restored["intrusion_backout_mps"] == safety["intrusion_backout_mps"]
 
 
 def test_feed_forward_and_target_path_in_the_form(page, console: ApiServer, bus: Bus) -> None:  # noqa: F811

@@ -2,7 +2,8 @@
 every keypoint's height and distance from the turning axis and ends where it began, a step-in
 carries the person along the direction they face by exactly the step, a side-step towards their
 right, a scaled person keeps the floor point below the pelvis and scales every distance, a broadened
-one has its shoulders the width apart and its arms' segments unchanged; bad input is refused."""
+one has its shoulders the width apart and its arms' segments unchanged, a mirrored one is the
+reflection with left and right swapped; bad input is refused."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from safemimic.evaluate.variants import main, read_recording
+from safemimic.evaluate.variants import main, mirrored, read_recording
 from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
 from tests.test_evaluate_truth import raise_recording, write_recording
 
@@ -50,8 +51,8 @@ def test_a_side_step_goes_right_and_a_scaled_person_grows_about_the_floor_below_
     source = write_recording(tmp_path / "raise.npz", xyz)
     assert main([str(source), str(tmp_path / "out"), "--side-m", "0.4", "--scales", "0.8,1.25"]) == 0
     written = sorted(p.name for p in (tmp_path / "out").iterdir())
-    assert written == ["raise_scale080.npz", "raise_scale125.npz", "raise_shoulders370mm.npz", "raise_sidestep.npz",
-                       "raise_stepin.npz", "raise_turn.npz"]
+    assert written == ["raise_mirror.npz", "raise_scale080.npz", "raise_scale125.npz", "raise_shoulders370mm.npz",
+                       "raise_sidestep.npz", "raise_stepin.npz", "raise_turn.npz"]
     side, _ = read_recording(tmp_path / "out" / "raise_sidestep.npz")
     shift = side["xyz"][-1] - xyz[-1]
     np.testing.assert_allclose(shift, np.repeat(shift[:1], len(KEYPOINT_NAMES), axis=0), atol=1e-12)  # rigid
@@ -91,6 +92,32 @@ def test_a_broadened_or_narrowed_person_has_the_shoulders_the_width_apart_and_th
     np.testing.assert_array_equal(out[5], xyz[5])
     assert main([str(source), str(tmp_path / "none"), "--shoulder-width", "0"]) == 0
     assert not list((tmp_path / "none").glob("*_shoulders*"))
+
+
+def test_a_mirrored_person_is_the_reflection_with_left_and_right_swapped(tmp_path: Path) -> None:
+    xyz = raise_recording(2.0) + [0.3, -0.2, 0.0]
+    conf = np.tile(np.linspace(0.5, 1.0, len(KEYPOINT_NAMES)), (len(xyz), 1))
+    source = tmp_path / "raise.npz"
+    np.savez(source, names=np.array(KEYPOINT_NAMES), t=np.arange(len(xyz)) / 30.0, xyz=xyz, fps=np.float64(30.0),
+             conf=conf)
+    assert main([str(source), str(tmp_path / "out")]) == 0
+    mirror, names = read_recording(tmp_path / "out" / "raise_mirror.npz")
+    out = mirror["xyz"]
+    left, right = (KEYPOINT_INDEX[f"{side}_wrist"] for side in ("left", "right"))
+    pelvis = xyz[0, PELVIS]
+    lateral = xyz[0, KEYPOINT_INDEX["left_shoulder"], :2] - xyz[0, KEYPOINT_INDEX["right_shoulder"], :2]
+    lateral /= np.linalg.norm(lateral)
+    # the left wrist becomes the right one: at its height, as far to the right as it was to the left
+    np.testing.assert_allclose(out[:, right, 2], xyz[:, left, 2], atol=1e-12)
+    np.testing.assert_allclose((out[:, right, :2] - pelvis[:2]) @ lateral, -(xyz[:, left, :2] - pelvis[:2]) @ lateral,
+                               atol=1e-12)
+    np.testing.assert_allclose(out[:, PELVIS, 2], xyz[:, PELVIS, 2], atol=1e-12)
+    np.testing.assert_allclose(out[0, PELVIS], pelvis, atol=1e-12)
+    mirrored_lateral = out[0, KEYPOINT_INDEX["left_shoulder"], :2] - out[0, KEYPOINT_INDEX["right_shoulder"], :2]
+    assert mirrored_lateral @ lateral > 0  # still facing the same way: left is left
+    np.testing.assert_allclose(mirrored(out, names), xyz, atol=1e-12)  # twice is the original
+    np.testing.assert_array_equal(mirror["conf"][:, left], conf[:, right])
+    np.testing.assert_array_equal(mirror["conf"][:, PELVIS], conf[:, PELVIS])
 
 
 def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

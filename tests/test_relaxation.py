@@ -47,9 +47,10 @@ def random_safe_state(p, rng: np.random.Generator) -> np.ndarray:
             return q
 
 
-def random_intrusion(p, rng: np.random.Generator, *others):
+def random_intrusion(p, rng: np.random.Generator, *others, speeds: tuple[float, float] = (1.0, 3.0)):
     """A random joint state whose self rows and joint barriers hold, and a person's capsules pushed
-    into the margin of the robot's left forearm at 1–3 m/s toward it (in ``others``' barriers too)."""
+    into the margin of the robot's left forearm at ``speeds`` (m/s, uniform; 1–3 by default) toward it
+    (in ``others``' barriers too)."""
     kin = p.kinematics
     q = random_safe_state(p, rng)
     endpoints, _ = kin.compute(q)
@@ -60,7 +61,7 @@ def random_intrusion(p, rng: np.random.Generator, *others):
     capsules = np.repeat(np.stack([centre - 0.1 * direction, centre + 0.1 * direction])[None], 7, axis=0)
     capsules += rng.normal(scale=0.05, size=(7, 1, 3))
     toward = forearm.mean(axis=0) - capsules.mean(axis=1)
-    speed = rng.uniform(1.0, 3.0)
+    speed = rng.uniform(*speeds)
     velocities = np.repeat((speed * toward / np.linalg.norm(toward, axis=1, keepdims=True))[:, None], 2, axis=1)
     for pipeline in (p, *others):
         pipeline.barrier.set_external(capsules, np.full(7, 0.06), np.ones(7, bool), velocities)
@@ -210,18 +211,21 @@ def person_in_the_legs(p, rng: np.random.Generator, q: np.ndarray, inside: bool 
     p.barrier.set_external(capsules, np.full(7, 0.05), np.arange(7) == 0 if not inside else np.ones(7, bool), velocities)
 
 
-def assert_stops_without_retreat(p, q: np.ndarray, q_nom: np.ndarray, u_prev: np.ndarray) -> None:
-    """From ``q`` moving at ``u_prev`` with the imitation pulling to ``q_nom`` and the person the
-    barrier holds: the step is a protective stop aiming at rest (u_ref = 0), finite, not HOLD; the
-    hard rows hold and no person row is approached faster than braking as hard as the acceleration
-    bound allows (its floor min(b_i, 0), retreat demands b_i > 0 included: none is demanded); the
-    robot is at rest within 0.5 s."""
+def stop_rows(p) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, b, soft, brake) of ``p``'s next step, from its q_cbf and previous command: the stacked rows
+    as the barriers write them and the hardest braking the acceleration bound allows."""
+    q = p.filter.q_cbf.copy()
     A, b, soft = stacked(p, q)
-    p.filter.reset(q)
-    p.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
     bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, DT))  # noqa: SLF001
-    brake = np.clip(0.0, bounded_lower, bounded_upper)  # the hardest braking the bound allows
-    result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
+    return A, b, soft, np.clip(0.0, bounded_lower, bounded_upper)
+
+
+def assert_a_stop_that_never_closes_in(result, A: np.ndarray, b: np.ndarray, soft: np.ndarray,
+                                       brake: np.ndarray) -> None:
+    """``result`` (a step from the rows of :func:`stop_rows`) is a protective stop aiming at rest
+    (u_ref = 0), finite, not HOLD; the hard rows hold and no person row is approached faster than
+    braking as hard as the acceleration bound allows (its floor min(b_i, 0), retreat demands b_i > 0
+    included)."""
     assert result.protective_stop and np.isfinite(result.u).all() and result.mode is not SafetyMode.HOLD
     np.testing.assert_array_equal(result.u_ref, 0.0)
     lhs = A @ result.u
@@ -229,6 +233,19 @@ def assert_stops_without_retreat(p, q: np.ndarray, q_nom: np.ndarray, u_prev: np
     if "accel_max" not in result.gave_way:
         floor = np.minimum(np.minimum(b[soft], 0.0), A[soft] @ brake)
         assert (lhs[soft] >= floor - TOL).all(), "the robot closed in on a person capsule"
+
+
+def assert_stops_without_retreat(p, q: np.ndarray, q_nom: np.ndarray, u_prev: np.ndarray) -> None:
+    """From ``q`` moving at ``u_prev`` with the imitation pulling to ``q_nom`` and the person the
+    barrier holds: the step is a protective stop aiming at rest (u_ref = 0), finite, not HOLD; the
+    hard rows hold and no person row is approached faster than braking as hard as the acceleration
+    bound allows (its floor min(b_i, 0), retreat demands b_i > 0 included: none is demanded); the
+    robot is at rest within 0.5 s."""
+    p.filter.reset(q)
+    p.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
+    rows = stop_rows(p)
+    result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
+    assert_a_stop_that_never_closes_in(result, *rows)
     for _ in range(round(0.5 / DT)):
         result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
         if not np.abs(result.u).max() > 1e-6:
@@ -295,6 +312,55 @@ def test_a_person_inside_a_margin_stops_the_robot_without_a_retreat_on_random_st
     far = endpoints[FOREARM].mean(axis=0) + [0.5, 0.0, 0.0]  # 0.5 m in front of the forearm
     alone.barrier.set_external(np.repeat(np.stack([far, far + [0.0, 0.0, 0.3]])[None], 7, axis=0), np.full(7, 0.05))
     assert not alone.filter.step(alone.kinematics.q_home, DT).protective_stop
+
+
+def test_a_person_standing_inside_a_margin_is_backed_out_of_on_random_states() -> None:
+    """Backing out (``safety.intrusion_backout_mps``, default 0.05 m/s): a person standing still
+    with capsules inside the left forearm's margin, on random states with the robot moving and the
+    imitation pulling anywhere. Every step until no person row is inside is a protective stop
+    aiming at rest whose hard rows hold and whose person rows keep their floor, finite; the rows
+    the person is inside are opened (their h grows) and on most states the stop ends within 3 s,
+    the robot out of the margin. The same person walking in at 0.2 m/s, or with backing out off,
+    stops the robot where it is and it stays inside; so does a still person inside the torso's
+    margin."""
+    p, off, walking = pipeline_for(), pipeline_for(intrusion_backout_mps=0.0), pipeline_for()
+    rng = np.random.default_rng(41)
+    ended = 0
+    for _ in range(15):
+        q = random_intrusion(p, rng, off, speeds=(0.0, 0.0))
+        assert p.barrier.person_speed == 0.0
+        stacked(p, q)  # the rows at q
+        h0 = p.barrier.last_rows.h.copy()
+        inside = p.barrier.last_rows.person_inside(-1e-3)
+        assert inside.any()
+        q_nom = rng.uniform(p.kinematics.q_min, p.kinematics.q_max)
+        u_prev = 0.5 * rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)
+        for pipeline in (p, off):
+            pipeline.filter.reset(q)
+            pipeline.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
+        for _ in range(round(3.0 / DT)):
+            rows = stop_rows(p)
+            result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
+            if not result.protective_stop:
+                ended += 1
+                assert not p.barrier.last_rows.person_inside(-1e-3).any()
+                break
+            assert_a_stop_that_never_closes_in(result, *rows)
+        assert (p.barrier.last_rows.h[inside] > h0[inside] + 1e-3).any(), "nothing was backed out of"
+        for _ in range(round(1.0 / DT)):
+            result = off.filter.step(q_nom, DT, np.zeros_like(q_nom))
+        assert result.protective_stop and off.barrier.last_rows.person_inside(-1e-3).any()
+        np.testing.assert_allclose(result.u, 0.0, atol=1e-6)  # stood still where it was
+    assert ended >= 10, f"the stop ended on {ended} of 15 states"
+    q = random_intrusion(walking, rng, speeds=(0.2, 0.2))
+    assert walking.barrier.person_speed == pytest.approx(0.2)
+    assert_stops_without_retreat(walking, q, q, np.zeros_like(q))
+    home = p.kinematics.q_home
+    torso = p.kinematics.compute(home)[0][CAPSULE_NAMES.index("torso")].mean(axis=0)
+    p.barrier.set_external(np.repeat(np.stack([torso, torso + [0.3, 0.0, 0.0]])[None], 7, axis=0), np.full(7, 0.05),
+                           velocities=np.zeros((7, 2, 3)))
+    assert p.barrier.person_speed == 0.0
+    assert_stops_without_retreat(p, home, home, np.zeros_like(home))
 
 
 def test_a_protective_stop_brings_the_command_to_the_robot_twice_on_random_states() -> None:

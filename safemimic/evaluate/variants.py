@@ -19,6 +19,9 @@ into ``OUT`` with every other field unchanged:
   whole skeleton scaled by s about the floor point below the first frame's pelvis (a shorter or
   taller person doing the same motion: longer arms reach further, a taller body is closer to the
   robot's shoulders; the motion's speeds scale with it);
+- ``X_mirror.npz``: the mirror image about the vertical plane through frame 0's pelvis along the
+  direction the person faces, left and right keypoints swapped (the same motion by a left-handed
+  person: side by side, the arm that punches or slashes is now the one beside the robot);
 - ``X_shouldersNNNmm.npz`` (``--shoulder-width``, 0.37 m by default; NNN in mm): each arm
   (shoulder, elbow, wrist) carried outward along the frame's shoulder line so that the shoulders
   are that far apart in every frame, everything else unchanged (a broader person, or a skeleton
@@ -90,6 +93,26 @@ def side_stepped(xyz: np.ndarray, names: list[str], side_m: float = 0.5) -> np.n
     return xyz + np.linspace(0.0, side_m, len(xyz))[:, None, None] * right
 
 
+def mirror_order(names: list[str]) -> np.ndarray:
+    """(K,) for each keypoint the index of its mirror image in ``names``: left_X ↔ right_X (itself
+    when it has no side or its other side is missing)."""
+    def other(name: str) -> str:
+        for a, b in (("left_", "right_"), ("right_", "left_")):
+            if name.startswith(a):
+                return b + name.removeprefix(a)
+        return name
+    return np.array([names.index(other(n)) if other(n) in names else i for i, n in enumerate(names)])
+
+
+def mirrored(xyz: np.ndarray, names: list[str]) -> np.ndarray:
+    """``xyz`` (T, K, 3) reflected about the vertical plane through frame 0's pelvis that contains
+    frame 0's facing direction, its keypoints reordered by :func:`mirror_order` (a left-handed
+    person: the reflected left shoulder, now on the right, is the right shoulder)."""
+    left = np.cross([0.0, 0.0, 1.0], facing(xyz[0], names))  # horizontal unit: z × forward
+    offset = (xyz - floor_below_pelvis(xyz, names)) @ left
+    return (xyz - 2.0 * offset[..., None] * left)[:, mirror_order(names)]
+
+
 def scaled(xyz: np.ndarray, names: list[str], factor: float) -> np.ndarray:
     """``xyz`` (T, K, 3) scaled by ``factor`` about the floor point (z = 0) below frame 0's pelvis."""
     if not factor > 0.0:
@@ -141,7 +164,7 @@ def variants(xyz: np.ndarray, names: list[str], turns: float = 1.0, step_m: floa
     """Every variant of ``xyz`` (T, K, 3) by its file name suffix (module docstring); no broadened
     variant when ``shoulder_width`` is 0."""
     out = {"turn": turned(xyz, names, turns), "stepin": stepped_in(xyz, names, step_m),
-           "sidestep": side_stepped(xyz, names, side_m)}
+           "sidestep": side_stepped(xyz, names, side_m), "mirror": mirrored(xyz, names)}
     for factor in scales:
         out[f"scale{round(100 * factor):03d}"] = scaled(xyz, names, factor)
     if shoulder_width:
@@ -156,7 +179,10 @@ def write_variants(source: Path, out: Path, turns: float = 1.0, step_m: float = 
     written = []
     for suffix, xyz in variants(fields["xyz"], names, turns, step_m, side_m, scales, shoulder_width).items():
         path = out / f"{source.stem}_{suffix}.npz"
-        np.savez(path, **{**fields, "xyz": xyz})
+        conf = fields.get("conf")
+        sides = suffix == "mirror" and conf is not None and conf.ndim == 2 and conf.shape[1] == len(names)
+        conf = {"conf": conf[:, mirror_order(names)]} if sides else {}
+        np.savez(path, **{**fields, "xyz": xyz, **conf})
         written.append(path)
     return written
 

@@ -97,6 +97,7 @@ SAFETY_FIELDS: dict[str, str] = {
     "geometry": "safety.geometry",
     "sphere_k": "safety.sphere_k",
     "on_intrusion": "safety.on_intrusion",
+    "intrusion_backout_mps": "safety.intrusion_backout_mps",
     "feedforward": "safety.feedforward",
     "target_path": "safety.target_path",
 }
@@ -111,7 +112,7 @@ RETARGET_FIELDS: dict[str, str] = {
 }
 #: Safety request fields whose value goes into the configuration unchanged.
 _DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_predict_s",
-                  "human_velocity_term", "feedforward",
+                  "human_velocity_term", "feedforward", "intrusion_backout_mps",
                   "sphere_k"}
 #: Safety request fields that are a choice (an enum): the configuration takes the choice's value.
 _CHOICE_SAFETY = {"geometry", "on_intrusion", "target_path"}
@@ -186,6 +187,10 @@ class SafetyPatch(_Patch):
     on_intrusion: IntrusionResponse = Field(
         None, description="while a person is inside a robot capsule's margin: stop (protective stop, no retreat) | retreat"
         " | stop_on_give_way (also stop whenever a person moves in faster than the robot can retreat: it never dodges)"
+    )
+    intrusion_backout_mps: _like(SafetyConfig, "intrusion_backout_mps") = Field(
+        None, description="during the intrusion stop, a robot capsule a still person is inside backs out of it at up to "
+        "this speed (m/s); 0: it stands still until the person leaves"
     )
     sphere_k: Annotated[_like(SafetyConfig, "sphere_k"), BeforeValidator(_whole_number)] = Field(
         None, description="spheres: levels of subsampling k"
@@ -273,6 +278,7 @@ class SafetyParams(_View):
     geometry: GeometryName
     sphere_k: int
     on_intrusion: IntrusionResponse
+    intrusion_backout_mps: float
     feedforward: bool
     target_path: TargetPath
 
@@ -291,6 +297,7 @@ class SafetyParams(_View):
             geometry=s.geometry,
             sphere_k=s.sphere_k,
             on_intrusion=s.on_intrusion,
+            intrusion_backout_mps=s.intrusion_backout_mps,
             feedforward=s.feedforward,
             target_path=s.target_path,
         )

@@ -25,6 +25,7 @@ h = NaN, so the QP keeps a fixed size.
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
@@ -186,6 +187,9 @@ class CollisionGeometry(Barrier):
         #: added to every external capsule's radius at :meth:`set_external` (m; ``safety.human_margin``,
         #: the person sensor's position uncertainty): h of a robot–person row counts it
         self.person_margin = 0.0
+        #: the fastest endpoint of a present external capsule at :meth:`set_external` (m/s): 0 with none
+        #: present, inf when their velocities are unknown (none given)
+        self.person_speed = 0.0
         self._all_enabled = True
         #: (m,) the monitored pair (index into ``pairs``) of each row; the identity for capsules.
         self.row_pair = np.arange(len(pairs))
@@ -232,10 +236,11 @@ class CollisionGeometry(Barrier):
         """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s; each radius plus
         :attr:`person_margin`); None: none present. ``sweep`` (E,) m: how much each was widened to
         enclose where its velocity carries it (:func:`~services.safety.human_memory.swept_capsules`;
-        None: 0), reported per row as :attr:`BarrierRows.sweep`."""
+        None: 0), reported per row as :attr:`BarrierRows.sweep`. :attr:`person_speed` follows."""
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
+            self.person_speed = 0.0
         else:
             self._endpoints[ext] = endpoints
             self._radii[ext] = np.add(radii, self.person_margin)
@@ -243,6 +248,9 @@ class CollisionGeometry(Barrier):
             self._velocities[ext] = 0.0 if velocities is None else velocities
             self._sweep[ext] = 0.0 if sweep is None else sweep
             self._row_sweep = self._sweep[self._row_capsule]
+            present = self._valid[ext]
+            self.person_speed = (math.inf if velocities is None else
+                                 float(np.linalg.norm(self._velocities[ext][present], axis=2).max(initial=0.0)))
             self._external_changed()
         self._all_enabled = bool(self._valid.all())
         self._row_enabled = self._row_all_enabled if self._all_enabled else self._valid[self._row_capsule]
