@@ -71,11 +71,12 @@ def test_an_invalid_slot_is_held_without_velocity_then_forgotten_after_the_hold(
     np.testing.assert_array_equal(out.endpoints[RIGHT_FOREARM], state(1.0, np.ones(7, bool)).capsules[RIGHT_FOREARM])
     np.testing.assert_allclose(out.radii[[RIGHT_FOREARM, 0]], [0.06, 0.07])  # remembered radius, current ones
     assert not out.velocities[RIGHT_FOREARM].any() and out.velocities[0].any()  # no velocity term when held
+    np.testing.assert_array_equal(out.held, np.arange(7) == RIGHT_FOREARM)  # its velocity is unknown, not 0
     memory.update(state(2.0, all_but(RIGHT_FOREARM)), 10.0 + HOLD_S, HOLD_S)  # at the hold: still held
     assert memory.lost
     memory.update(state(2.0, all_but(RIGHT_FOREARM)), 10.0 + HOLD_S + 0.01, HOLD_S)  # past it: forgotten
     out = memory.capsules(7, True)
-    assert not memory.lost and not out.valid[RIGHT_FOREARM] and out.valid.sum() == 6
+    assert not memory.lost and not out.valid[RIGHT_FOREARM] and out.valid.sum() == 6 and out.held is None
     memory.update(state(3.0, np.ones(7, bool)), 13.0, HOLD_S)  # seen again: valid, nothing lost
     assert not memory.lost and memory.capsules(7, True).endpoints[RIGHT_FOREARM, 0, 0] == 3.0
 

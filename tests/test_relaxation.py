@@ -17,7 +17,7 @@ from scipy.optimize import linprog
 
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
-from services.safety.filter import movable_rows
+from services.safety.filter import STILL_FOR_S, movable_rows
 from services.safety.human_memory import padded, swept_capsules
 from services.safety.qp import QPProblem
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
@@ -319,10 +319,11 @@ def test_a_person_standing_inside_a_margin_is_backed_out_of_on_random_states() -
     with capsules inside the left forearm's margin, on random states with the robot moving and the
     imitation pulling anywhere. Every step until no person row is inside is a protective stop
     aiming at rest whose hard rows hold and whose person rows keep their floor, finite; the rows
-    the person is inside are opened (their h grows) and on most states the stop ends within 3 s,
-    the robot out of the margin. The same person walking in at 0.2 m/s, or with backing out off,
-    stops the robot where it is and it stays inside; so does a still person inside the torso's
-    margin."""
+    the person is inside are opened (their h grows) once they have stood still for STILL_FOR_S, and
+    on most states the stop ends within 3 s, the robot out of the margin. The same person walking in
+    at 0.2 m/s, or with backing out off, stops the robot where it is and it stays inside; so does a
+    still person inside the torso's margin. A capsule held from memory makes the person's speed
+    unknown."""
     p, off, walking = pipeline_for(), pipeline_for(intrusion_backout_mps=0.0), pipeline_for()
     rng = np.random.default_rng(41)
     ended = 0
@@ -338,10 +339,11 @@ def test_a_person_standing_inside_a_margin_is_backed_out_of_on_random_states() -
         for pipeline in (p, off):
             pipeline.filter.reset(q)
             pipeline.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
-        for _ in range(round(3.0 / DT)):
+        for step in range(round(3.0 / DT)):
             rows = stop_rows(p)
             result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
             if not result.protective_stop:
+                assert (step + 1) * DT >= STILL_FOR_S  # still for long enough first
                 ended += 1
                 assert not p.barrier.last_rows.person_inside(-1e-3).any()
                 break
@@ -361,6 +363,10 @@ def test_a_person_standing_inside_a_margin_is_backed_out_of_on_random_states() -
                            velocities=np.zeros((7, 2, 3)))
     assert p.barrier.person_speed == 0.0
     assert_stops_without_retreat(p, home, home, np.zeros_like(home))
+    held = np.arange(7) == 3
+    p.barrier.set_external(np.repeat(np.stack([torso, torso + [0.3, 0.0, 0.0]])[None], 7, axis=0), np.full(7, 0.05),
+                           velocities=np.zeros((7, 2, 3)), held=held)
+    assert p.barrier.person_speed == np.inf
 
 
 def test_a_protective_stop_brings_the_command_to_the_robot_twice_on_random_states() -> None:

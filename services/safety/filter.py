@@ -115,7 +115,9 @@ stand. So the stop backs out of them when
 
 - the person stands still: every present person capsule's endpoints slower than
   :data:`STILL_SPEED` (0.15 m/s: a standing person sways by a few cm/s, a walking one carries the
-  torso at ≥ 0.5 m/s; unknown velocities count as moving), and
+  torso at ≥ 0.5 m/s) for the last :data:`STILL_FOR_S` (0.5 s: longer than a keypoint glitch or the
+  turning point of a swing); unknown velocities (a stale person, a capsule held from memory) count
+  as moving, and
 - they are inside the margins of the robot's arms only (not the torso's, not the fixed body's).
 
 Then each pair row whose person capsule is inside for certain (``person_inside``, as the stop
@@ -215,8 +217,12 @@ _STATIC_ROW = 1e-12
 ACCEL_WIDENING = (1.0, 2.0, 4.0, 8.0, 16.0)
 #: the name :attr:`StepResult.gave_way` gives the acceleration bound when it was widened or dropped
 ACCEL_BOUND = "accel_max"
-#: a person whose every capsule endpoint moves slower than this (m/s) stands still (module docstring, "Backing out")
+#: a person whose every capsule endpoint moves slower than this (m/s) for STILL_FOR_S stands still (module
+#: docstring, "Backing out")
 STILL_SPEED = 0.15
+#: how long (s) a person must have been slower than STILL_SPEED to stand still: longer than a keypoint glitch
+#: or the turning point of a swing
+STILL_FOR_S = 0.5
 #: a command whose every |u*| is at most this (rad/s) is at rest (a protective stop's braking is over)
 AT_REST = 1e-9
 
@@ -381,6 +387,7 @@ class SafetyFilter:
         self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
         self._aimed_rest = False  # the last step aimed at rest (a protective stop, or person rows gave way)
         self._rested = False  # since the steps began to aim at rest, a settle at rest was done
+        self._still_for = 0.0  # s the person has been slower than STILL_SPEED (module docstring, "Backing out")
 
     @property
     def params(self) -> FilterParams:
@@ -416,6 +423,7 @@ class SafetyFilter:
             self.q_cbf = np.clip(q, self.q_min, self.q_max)
             self._u_prev = None
             self._aimed_rest = self._rested = False
+            self._still_for = 0.0
 
     def blocks_at(self, q: np.ndarray) -> list[RowBlock]:
         """Every barrier's rows at configuration ``q`` (no QP, no state change); the pair rows first."""
@@ -495,6 +503,7 @@ class SafetyFilter:
         n = q.shape[0]
         A_all, b_all, inside, low_self, rows = self._write_rows(q)
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
+        self._still_for = self._still_for + dt if self.barrier.person_speed <= STILL_SPEED else 0.0
         fixed_stop = self.enforce and self._fixed_body_row_fails(b_all)
         stop = fixed_stop or (self.enforce and p.on_intrusion in _STOPS and self._intruded(rows))
         settled = None
@@ -570,13 +579,14 @@ class SafetyFilter:
         """The protective stop's rows (module docstring), in place in ``b`` (M,), the stacked rows'
         bounds: every robot–person row (``soft`` (M,)) at its floor, b_i ← min(b_i, 0); if ``backs_out``
         (not the stop at the fixed body), while the person stands still
-        (:attr:`~services.safety.barriers.pairs.CollisionGeometry.person_speed` ≤ :data:`STILL_SPEED`)
+        (:attr:`~services.safety.barriers.pairs.CollisionGeometry.person_speed` ≤ :data:`STILL_SPEED`
+        for :data:`STILL_FOR_S`)
         and every pair row whose person capsule is inside for certain (:meth:`BarrierRows.person_inside`)
         is an arm capsule's, those rows keep b_i ← min(b_i, ``backout``) instead (module docstring,
         "Backing out from a person who stands inside")."""
         backout = self.params.backout
         intruded = None
-        if backs_out and backout > 0.0 and self.barrier.person_speed <= STILL_SPEED:
+        if backs_out and backout > 0.0 and self._still_for >= STILL_FOR_S:
             intruded = rows.person_inside(-VIOLATION_TOL)
             if (intruded & ~self._arm_person_rows).any():  # inside the torso's margin too: no back-out
                 intruded = None

@@ -39,18 +39,21 @@ from shared.names import CAPSULE_NAMES
 class ExternalCapsules(NamedTuple):
     """The barrier's external capsule arrays, as ``set_external`` takes them (E external slots):
     endpoints (E,2,3) m, radii (E,) m, valid (E,) bool, velocities (E,2,3) m/s or None, sweep (E,) m
-    how much each radius grew to enclose the capsule swept ahead (None: none swept)."""
+    how much each radius grew to enclose the capsule swept ahead (None: none swept), held (E,) bool
+    the slots remembered rather than measured in the newest message, whose velocity (0) is unknown
+    (None: none)."""
 
     endpoints: np.ndarray
     radii: np.ndarray
     valid: np.ndarray
     velocities: np.ndarray | None
     sweep: np.ndarray | None = None
+    held: np.ndarray | None = None
 
 
 def padded(
     n_external: int, endpoints: np.ndarray, radii: np.ndarray, valid: np.ndarray, velocities: np.ndarray | None,
-    sweep: np.ndarray | None = None,
+    sweep: np.ndarray | None = None, held: np.ndarray | None = None,
 ) -> ExternalCapsules:
     """One person's capsules in the pair set's ``n_external`` slots (7 per person; the ``paper72``
     preset has a second person): this person fills the first 7, the other slots stay invalid
@@ -58,12 +61,15 @@ def padded(
     n = min(n_external, endpoints.shape[0])
     out = ExternalCapsules(np.zeros((n_external, 2, 3)), np.zeros(n_external), np.zeros(n_external, bool),
                            None if velocities is None else np.zeros((n_external, 2, 3)),
-                           None if sweep is None else np.zeros(n_external))
+                           None if sweep is None else np.zeros(n_external),
+                           None if held is None else np.zeros(n_external, bool))
     out.endpoints[:n], out.radii[:n], out.valid[:n] = endpoints[:n], radii[:n], valid[:n]
     if out.velocities is not None:
         out.velocities[:n] = velocities[:n]
     if out.sweep is not None:
         out.sweep[:n] = sweep[:n]
+    if out.held is not None:
+        out.held[:n] = held[:n]
     return out
 
 
@@ -177,13 +183,15 @@ class HumanMemory:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
         ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s``
         τ > 0 (s): each slot valid in the newest message swept ahead by :func:`swept_capsules` for τ
-        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged). ``stale``: the
+        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged; lost slots are
+        ``held``). ``stale``: the
         newest message is older than ``safety.human_timeout_s`` (or its source is gone): the capsules as
         last measured, neither velocity nor sweep (a velocity that old says nothing of where the person is
         now)."""
         velocities = self._velocities if use_velocity and not stale else None
+        held = self._lost if self.lost else None
         if predict_s > 0.0 and not stale and self._velocities is not None:
             endpoints, radii, sweep = swept_capsules(self._endpoints, self._radii, self._velocities,
                                                      predict_s + self.lateness)
-            return padded(n_external, endpoints, radii, self._valid, velocities, sweep)
-        return padded(n_external, self._endpoints, self._radii, self._valid, velocities)
+            return padded(n_external, endpoints, radii, self._valid, velocities, sweep, held)
+        return padded(n_external, self._endpoints, self._radii, self._valid, velocities, held=held)

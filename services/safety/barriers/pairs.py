@@ -188,7 +188,7 @@ class CollisionGeometry(Barrier):
         #: the person sensor's position uncertainty): h of a robot–person row counts it
         self.person_margin = 0.0
         #: the fastest endpoint of a present external capsule at :meth:`set_external` (m/s): 0 with none
-        #: present, inf when their velocities are unknown (none given)
+        #: present, inf when their velocities are unknown (none given, or a present capsule held)
         self.person_speed = 0.0
         self._all_enabled = True
         #: (m,) the monitored pair (index into ``pairs``) of each row; the identity for capsules.
@@ -232,11 +232,14 @@ class CollisionGeometry(Barrier):
         valid: np.ndarray | None = None,
         velocities: np.ndarray | None = None,
         sweep: np.ndarray | None = None,
+        held: np.ndarray | None = None,
     ) -> None:
         """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s; each radius plus
         :attr:`person_margin`); None: none present. ``sweep`` (E,) m: how much each was widened to
         enclose where its velocity carries it (:func:`~services.safety.human_memory.swept_capsules`;
-        None: 0), reported per row as :attr:`BarrierRows.sweep`. :attr:`person_speed` follows."""
+        None: 0), reported per row as :attr:`BarrierRows.sweep`; ``held`` (E,) bool: the capsules
+        remembered rather than measured, whose velocity is unknown (None: none). :attr:`person_speed`
+        follows."""
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
@@ -249,7 +252,8 @@ class CollisionGeometry(Barrier):
             self._sweep[ext] = 0.0 if sweep is None else sweep
             self._row_sweep = self._sweep[self._row_capsule]
             present = self._valid[ext]
-            self.person_speed = (math.inf if velocities is None else
+            unknown = velocities is None or (held is not None and bool((present & held).any()))
+            self.person_speed = (math.inf if unknown else
                                  float(np.linalg.norm(self._velocities[ext][present], axis=2).max(initial=0.0)))
             self._external_changed()
         self._all_enabled = bool(self._valid.all())
