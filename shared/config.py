@@ -291,10 +291,11 @@ class SafetyConfig(_Section):
     )
     intrusion_backout_mps: float = Field(
         default=0.05, ge=0, le=0.25,
-        description="during the intrusion stop, while the person stands still (every capsule slower than 0.15 m/s), "
-        "each robot capsule a person capsule is inside backs out of it at up to this speed (m/s, along the pair's "
-        "normal) until no person row is inside: a person who stands in the robot's margin does not freeze it there. "
-        "0: the robot stands still until they leave. README 'Backing out from a person who stands inside'",
+        description="during the intrusion stop, once the person stands still (every capsule slower than 0.15 m/s for "
+        "0.5 s, none held from memory) inside the margins of the robot's arms only, each arm backs out of the person "
+        "capsules it holds at up to this speed (m/s, along the pair's normal) until none is inside: a person who "
+        "stands in an arm's margin does not freeze the robot there. 0: it stands still until they leave. README "
+        "'Backing out from a person who stands inside'",
     )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
     lost_human_hold_s: float = Field(

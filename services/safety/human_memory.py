@@ -183,11 +183,10 @@ class HumanMemory:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
         ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s``
         τ > 0 (s): each slot valid in the newest message swept ahead by :func:`swept_capsules` for τ
-        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged; lost slots are
-        ``held``). ``stale``: the
-        newest message is older than ``safety.human_timeout_s`` (or its source is gone): the capsules as
-        last measured, neither velocity nor sweep (a velocity that old says nothing of where the person is
-        now)."""
+        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged). Lost
+        slots are ``held`` (None while none is). ``stale``: the newest message is older than
+        ``safety.human_timeout_s`` (or its source is gone): the capsules as last measured, neither
+        velocity nor sweep (a velocity that old says nothing of where the person is now)."""
         velocities = self._velocities if use_velocity and not stale else None
         held = self._lost if self.lost else None
         if predict_s > 0.0 and not stale and self._velocities is not None:
