@@ -17,7 +17,8 @@ from scipy.optimize import linprog
 
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
-from services.safety.filter import STILL_FOR_S, movable_rows
+from services.safety.filter import movable_rows
+from services.safety.protective_stop import STILL_FOR_S
 from services.safety.human_memory import padded, swept_capsules
 from services.safety.qp import QPProblem
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
@@ -817,7 +818,7 @@ def test_a_swept_person_stops_the_robot_only_once_the_measured_capsule_is_inside
     def step(capsules, velocities, radius, sweep_reported, q, q_nom):
         ends, radii, sweep = swept_capsules(capsules, np.full(7, radius), velocities, 0.093)
         p.barrier.set_external(*padded(7, ends, radii, np.ones(7, bool), velocities, sweep if sweep_reported else None))
-        fixed = p.filter._fixed_body_row_fails(np.concatenate([blk.b for blk in p.filter.blocks_at(q)]))  # noqa: SLF001
+        fixed = p.filter.stops.at_fixed_body(np.concatenate([blk.b for blk in p.filter.blocks_at(q)]))
         p.filter.reset(q)
         return fixed, p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop
 

@@ -73,91 +73,16 @@ robot than the hair at q_cbf:
    README "The intrusion stop"). Only stage 2's objective changes, so the feasibility argument
    below is unchanged.
 
-**Protective stop at the robot's fixed body.** A robot–person row of a robot capsule that no
-joint moves (a thigh: A_i = 0) cannot be honoured by any u once it asks for a positive rate,
-b_i = −γ (h_i − T a_i) + a_i > 0: the person is inside the legs' margin, or approaching it at a_i
-will be within the look-ahead, i.e. h_i < a_i (T + 1/γ). Such a person is walking into a robot that
-cannot get out of the way, known only as they were a camera latency earlier. Then every
-robot–person row keeps only its floor, b_i ← min(b_i, 0) (never closer to any perceived capsule,
-no retreat demanded), and the target is rest (u_ref = 0): the robot brakes within the acceleration
-bound — starting as the person approaches, so that it has stopped by the time they arrive — and
-stands still until no such row fails. Retreating instead — the CBF's b_i = −γ h_i > 0, arms and
-waist at their velocity bounds away from a person 60 ms old — swept other surfaces of the rotating
-links into the person: on the development set's two walk-throughs 543 of 586 robot-caused contact
-steps came while the person stood inside the pelvis or legs. Only soft rows change and only
-downward, so the feasibility argument below holds as it is (u = 0 satisfies a row
-A_i u ≥ min(b_i, 0)).
-
-**Protective stop while a person is inside a margin** (``on_intrusion`` "stop", the default, or
-"stop_on_give_way"): the same stop — every robot–person row keeps only its floor,
-b_i ← min(b_i, 0), the target is rest — whenever some enabled robot–person row of the pair
-barrier has h_i < −``VIOLATION_TOL``: a person capsule is inside a robot capsule's margin (φ plus
-the person margin), which the rows never let the robot do, so the person moved in, faster than
-the robot could leave or while the camera still showed them elsewhere. Retreating from them
-(``"retreat"``: the violated rows demand A_i u ≥ −γ h_i > 0, the least total violation first)
-moves the robot along normals of capsules seen a camera latency ago, at up to γ|h| (0.9 m/s at
-h = −90 mm): on the test variants of the development clips (a full turn in place, a step of 1 m toward the robot) that swung hands
-into true thighs at 1 m/s and leaned the torso into a true forearm while the perceived pairs
-opened. The stop ends as soon as no person row is inside (h ≥ −1 mm) and imitation resumes under
-the ordinary rows. With the person swept ahead (``safety.human_predict_s``: each person capsule
-widened by ``sweep`` to enclose where its velocity carries it) a row counts as inside only when
-the capsule as measured is, for certain: its axis lies within ``sweep`` of the swept axis, so its
-h ≤ h_swept + 2·sweep, and the stop takes h_swept + 2·sweep < −1 mm. A person only expected to come
-in is kept out by the (swept) rows, not met by a robot standing still. Like the stop above it
-only lowers soft rows' b, so the feasibility argument below is unchanged. Measured (README "The
-intrusion stop"): the distance the robot closed into the true person 2.4–5× smaller in contact and
-1.7–3.5× within φ, at 11–30 % more contact steps, which are the person's.
-
-**Backing out from a person who stands inside.** The intrusion stop holds the robot while a person
-is inside a margin; a person who *stays* there (standing beside the robot with a hand hanging into
-its forearm's margin: a broad person where a narrow one fits) would freeze it for as long as they
-stand. So the stop backs out of them when
-
-- the person stands still: every present person capsule's endpoints slower than
-  :data:`STILL_SPEED` (0.15 m/s: a standing person sways by a few cm/s, a walking one carries the
-  torso at ≥ 0.5 m/s) for the last :data:`STILL_FOR_S` (0.5 s: longer than a keypoint glitch or the
-  turning point of a swing); unknown velocities (a stale person, a capsule held from memory) count
-  as moving, and
-- they are inside the margins of the robot's arms only (not the torso's, not the fixed body's).
-
-Then each pair row whose person capsule is inside for certain (``person_inside``, as the stop
-decides) keeps b_i ← min(b_i, c) instead of its floor, c = ``backout``
-(``safety.intrusion_backout_mps``, 0.05 m/s): the arm backs out along the pair's normal at up to c,
-the least motion that does so (the target is still rest), until no row is inside and imitation
-resumes under the ordinary rows. A still person is where the camera showed them a latency ago, so
-backing out of their capsules moves no surface toward where they really are, and every other
-person row keeps at least its floor. Otherwise the stop stays as it is: backing out of a moving
-person's capsules, a camera latency old, is what ``retreat`` does; a person inside the fixed body
-is walking into the robot (on the test variants a person stepping slowly in was backed out of into
-1,198 robot-caused contact steps); backing out of a person inside the torso's margin leans the
-torso, whose mesh meets them where its capsule's closest point is not closing (the same person
-stepping in: 284). The back-out rows are lowered, never raised (min(b_i, c) ≤ b_i), and their relaxation floor
-stays min(b_i, 0) = 0, so the feasibility argument below holds as it is. Measured (README "Backing
-out from a person who stands inside"): a broad person (shoulders 0.37 m) dancing beside the robot,
-4,113 contact steps → 0.
-
-**The stop holds the robot where it is.** A servo tracks q_cbf with a lag: braking within the
-acceleration bound leaves the joints 1–20 mrad behind the command, and once the command is at rest
-they close that gap, the robot moving on into a person after the filter stopped it (traced with a
-noisy camera: most robot-caused contact steps were u* = 0 with a joint still converging onto
-q_cbf). A step *aims at rest* when it is a protective stop (any of the above) or a relaxed step
-whose person rows gave way (stage 2 aimed at ū). q_cbf is first brought to the robot's joints
-``q_robot`` (measured, extrapolated to the step by their velocity; the caller's) on the first step
-of a protective stop decided from its rows, and once on the first step after one that aimed at
-rest and commanded it (|u*| ≤ :data:`AT_REST`: the braking is over, the lag it left is not),
-once per run of steps aiming at rest. It is moved by at most [u_min, u_max]·Δt per joint and kept
-within the joint limits; the rows are evaluated there and the step runs from there, its u* still
-braking from u_prev within the acceleration bound. The command moves to where the robot already
-is, so the robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those steps
-(:attr:`StepResult.settled` says which; the service's command carries it). Twice per run of steps
-aiming at rest at most, and never while imitating: a servo with a steady error (gravity it does
-not compensate) would sag by that error at every settle, and a command at rest during imitation
-(a still person, K (q_nom − q_cbf) decayed to nothing) settling onto a servo stuck within its
-friction would start a slow cycle. A missing or non-finite ``q_robot`` settles nothing. Measured
-(README "The stop holds the robot where it is"): with a noisy camera robot-caused contact steps
-289 → 51 and approach steps 298 → 78 over three seeds. Every row is evaluated at the settled
-pose, so the argument below holds there as it is (a hard row the few mrad carried past its
-boundary, which the self margin makes unlikely, is a violated one and softened as such).
+**Protective stops** (:mod:`services.safety.protective_stop`, ISO/TS 15066 speed and separation
+monitoring): a step aims at rest (u_ref = 0) and every robot–person row keeps only its floor,
+b_i ← min(b_i, 0), while a person is inside the margin of a robot capsule no joint moves (or will
+be within the look-ahead) or, with ``on_intrusion`` "stop" (the default), inside any robot
+capsule's margin; a person who has stood still inside the arms' margins only is backed out of
+(b_i ← min(b_i, ``backout``)). On a stop's first step, and once its command is at rest, q_cbf is
+first brought to the robot's measured joints ``q_robot`` (at most [u_min, u_max]·Δt per joint,
+within the joint limits; :attr:`StepResult.settled`), so the servos do not close their tracking
+lag into the person, and the rows are evaluated there. Stops only lower soft rows' b, so the
+argument below holds as it is.
 
 *Feasible by construction.* u = 0, σ_i = max(b_i, 0) satisfies every constraint of both stages
 whenever 0 lies in the box, which holds in the last box tried (the velocity box alone, the
@@ -192,7 +117,7 @@ import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.joints import BRAKE_SHARE, JointBarrier
-from services.safety.barriers.kernel import any_positive, movable_mask
+from services.safety.barriers.kernel import movable_mask
 from services.safety.compiled import BoundKernel
 from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
@@ -201,30 +126,18 @@ from services.safety.qp.box import (
     HIGH, LOW, LOWER, U_MAX, U_MIN, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
 )
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
+from services.safety.protective_stop import VIOLATION_TOL, ProtectiveStop
 from shared.config import IntrusionResponse
 from shared.messages import SafetyMode
-from shared.names import CAPSULE_NAMES
 
-#: the ``FilterParams.on_intrusion`` values with the intrusion stop, and the one that also stops when person
-#: rows give way (module docstring)
-_STOPS = (IntrusionResponse.STOP.value, IntrusionResponse.STOP_ON_GIVE_WAY.value)
+#: the ``FilterParams.on_intrusion`` value that also stops when person rows give way (module docstring)
 _STOP_ON_GIVE_WAY = IntrusionResponse.STOP_ON_GIVE_WAY.value
-#: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
-VIOLATION_TOL = 1e-3
 #: a row whose largest |A_ij| is below this does not depend on u (a static link's pair)
 _STATIC_ROW = 1e-12
 #: the acceleration bound's factors, tried in order when no u within it satisfies the rows
 ACCEL_WIDENING = (1.0, 2.0, 4.0, 8.0, 16.0)
 #: the name :attr:`StepResult.gave_way` gives the acceleration bound when it was widened or dropped
 ACCEL_BOUND = "accel_max"
-#: a person whose every capsule endpoint moves slower than this (m/s) for STILL_FOR_S stands still (module
-#: docstring, "Backing out")
-STILL_SPEED = 0.15
-#: how long (s) a person must have been slower than STILL_SPEED to stand still: longer than a keypoint glitch
-#: or the turning point of a swing
-STILL_FOR_S = 0.5
-#: a command whose every |u*| is at most this (rad/s) is at rest (a protective stop's braking is over)
-AT_REST = 1e-9
 
 
 def movable_rows(A: np.ndarray) -> np.ndarray:
@@ -257,7 +170,7 @@ class FilterParams:
     accel_max: np.ndarray | None = None  # |u − u_prev|/Δt bound (n,) rad/s²; None: none
     self_margin: float = 0.0  # m the hard distance rows aim beyond φ (module docstring)
     on_intrusion: str = "stop"  # "stop" | "retreat" | "stop_on_give_way" (module docstring)
-    backout: float = 0.0  # m/s: an intruded robot capsule backs out of a still person during a stop (module docstring)
+    backout: float = 0.0  # m/s an arm backs out of a still person during a stop (services.safety.protective_stop)
 
     def __post_init__(self) -> None:
         """Scalars as float, arrays as contiguous float64 (the compiled step's bound argument types)."""
@@ -301,9 +214,9 @@ class StepResult:
     person inside its margin or reaching it within the look-ahead), or with ``on_intrusion``
     "stop" a person capsule is inside any robot capsule's margin (with "stop_on_give_way" also: a
     person row gave way), so the step aimed at rest (``u_ref`` 0) and no person row asked for more
-    than holding its distance (module docstring); ``settled``: q_cbf was first brought to the
-    robot's joints this step (module docstring, "The stop holds the robot where it is"), so
-    |q_cbf − the previous q_cbf| ≤ 2 u_max Δt instead of u_max Δt."""
+    than holding its distance or backing out of a still person; ``settled``: q_cbf was first
+    brought to the robot's joints this step, so |q_cbf − the previous q_cbf| ≤ 2 u_max Δt instead
+    of u_max Δt (both: :mod:`services.safety.protective_stop`)."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -357,7 +270,6 @@ class SafetyFilter:
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
         self._prepare, self._integrate = BoundKernel(prepare_qp), BoundKernel(integrate)
-        self._any_positive = BoundKernel(any_positive)
         # StepResult.relaxed of a step whose QP was feasible: no pair row gave way (shared, read-only)
         self._none_relaxed = np.zeros(barrier.n_rows, bool)
         self._none_relaxed.flags.writeable = False
@@ -369,25 +281,14 @@ class SafetyFilter:
         self._self_rows = np.concatenate([
             ~block.soft.astype(bool) if barrier.measures_distance else np.zeros(block.b.shape[0], bool)
             for barrier, block in zip(self.barriers, self.blocks_at(self.q_cbf))])
-        #: the stacked robot–person rows of robot capsules no joint moves (zero Jacobian: a thigh), whose
-        #: b > 0 starts the protective stop (module docstring); the pair barrier's rows come first
-        jacobians = self.kinematics.compute(self.q_cbf)[1]
-        fixed = ~jacobians.reshape(len(jacobians), -1).any(axis=1)
-        row_robot = np.asarray(barrier.pairs.first)[barrier.row_pair]
-        self._fixed_person_rows = np.flatnonzero(fixed[row_robot] & ~barrier.pairs.is_self[barrier.row_pair])
-        #: (m,) bool: the pair barrier's robot–person rows of an arm capsule (upper arm, forearm), the only
-        #: ones backed out of (module docstring, "Backing out from a person who stands inside")
-        arm = np.array(["arm" in name for name in CAPSULE_NAMES])
-        self._arm_person_rows = arm[row_robot] & ~barrier.pairs.is_self[barrier.row_pair]
+        #: the protective stops (:mod:`services.safety.protective_stop`)
+        self.stops = ProtectiveStop(barrier, self.kinematics.compute(self.q_cbf)[1])
         self._rest = np.zeros(len(kinematics.joint_names))
         self.params = params
         self.backend_name = backend
         self._qp: QPBackend = make_backend(backend)
         self._relaxation = LexicographicSolver()  # DAQP whatever the backend (services.safety.relaxation)
         self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
-        self._aimed_rest = False  # the last step aimed at rest (a protective stop, or person rows gave way)
-        self._rested = False  # since the steps began to aim at rest, a settle at rest was done
-        self._still_for = 0.0  # s the person has been slower than STILL_SPEED (module docstring, "Backing out")
 
     @property
     def params(self) -> FilterParams:
@@ -422,8 +323,7 @@ class SafetyFilter:
         if q.shape == self.q_cbf.shape and np.isfinite(q).all():
             self.q_cbf = np.clip(q, self.q_min, self.q_max)
             self._u_prev = None
-            self._aimed_rest = self._rested = False
-            self._still_for = 0.0
+            self.stops.reset()
 
     def blocks_at(self, q: np.ndarray) -> list[RowBlock]:
         """Every barrier's rows at configuration ``q`` (no QP, no state change); the pair rows first."""
@@ -463,21 +363,8 @@ class SafetyFilter:
             rows.b += self._shift[: rows.b.shape[0]]
         return A_all, b_all, inside, low_self, rows
 
-    def _settles(self, stop: bool) -> bool:
-        """Whether this step brings q_cbf to the robot (module docstring, "The stop holds the robot
-        where it is"): ``stop`` (this step is a protective stop decided from its rows) and the last
-        step did not aim at rest (the stop's first step); or the last step aimed at rest and
-        commanded it (|u*| ≤ :data:`AT_REST`), the first such step since the steps began to aim at
-        rest (marked done here; :meth:`step` clears the mark once a step no longer aims at rest)."""
-        if stop and not self._aimed_rest:
-            return True
-        if not self._aimed_rest or self._rested or self._u_prev is None or float(np.abs(self._u_prev).max()) > AT_REST:
-            return False
-        self._rested = True
-        return True
-
     def _settle_pose(self, q: np.ndarray, q_robot: np.ndarray, dt: float) -> np.ndarray | None:
-        """q_cbf brought to the robot on a settling step (:meth:`_settles`):
+        """q_cbf brought to the robot on a settling step (:meth:`ProtectiveStop.settles`):
         ``q_robot`` (n,) clipped to q ± [u_min, u_max]·Δt and to the joint
         limits; None when ``q_robot`` is not a finite (n,) array (the stop then holds q_cbf)."""
         q_robot = np.asarray(q_robot, dtype=np.float64)
@@ -492,7 +379,7 @@ class SafetyFilter:
         target's velocity, is fed forward (u_ref = dq_nom + K (q_nom − q_cbf); None: K only).
         ``q_robot`` (n,) rad: the robot's joints at this step (measured, extrapolated to now; None:
         unknown), to which q_cbf is brought as a protective stop begins and once a command aiming
-        at rest is at rest (module docstring).
+        at rest is at rest (:mod:`services.safety.protective_stop`).
 
         Every barrier writes its rows into the stacked A, b, soft, h (:meth:`Barrier.write_rows`);
         u_ref, the first velocity box and the rows a velocity can move, in the QP solver's layout, come
@@ -503,18 +390,16 @@ class SafetyFilter:
         n = q.shape[0]
         A_all, b_all, inside, low_self, rows = self._write_rows(q)
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
-        self._still_for = self._still_for + dt if self.barrier.person_speed <= STILL_SPEED else 0.0
-        fixed_stop = self.enforce and self._fixed_body_row_fails(b_all)
-        stop = fixed_stop or (self.enforce and p.on_intrusion in _STOPS and self._intruded(rows))
+        stop, fixed_stop = self.stops.decide(b_all, rows, p.on_intrusion, dt) if self.enforce else (False, False)
         settled = None
-        if self._settles(stop) and q_robot is not None:  # q_cbf brought to the robot (module docstring)
+        if self.stops.settles(stop, self._u_prev) and q_robot is not None:  # q_cbf brought to the robot
             settled = self._settle_pose(q, q_robot, dt)
             if settled is not None:
                 q = self.q_cbf = settled
                 A_all, b_all, inside, low_self, rows = self._write_rows(q)
-        if stop:  # the protective stop (module docstring): rest is the target, person rows keep their floor
+        if stop:  # the protective stop (services.safety.protective_stop): rest is the target, person rows their floor
             q_nom, dq_nom = q, self._rest
-            self._floor_person_rows(b_all, soft_all, rows, backs_out=not fixed_stop)
+            self.stops.floor_person_rows(b_all, soft_all, rows, not fixed_stop, p.backout)
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
         if q_nom.shape != q.shape or dq_nom.shape != q.shape:
@@ -565,52 +450,13 @@ class SafetyFilter:
             ddq = np.zeros(n) if u_prev is None else (u - u_prev) / dt
         self.q_cbf = q_next
         self._u_prev = u
-        # the steps aiming at rest (module docstring, "The stop holds the robot where it is")
-        self._aimed_rest = stop or gave_rest
-        self._rested = self._rested and self._aimed_rest
+        self.stops.stepped(stop or gave_rest)  # the steps aiming at rest (services.safety.protective_stop)
         intrusion = False
         if self.enforce and rows.min_h_all < 0.0:  # min over enabled rows: no row inside its margin, no intrusion
             person = rows.person_inside(0.0)
             intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
         return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
                           stop, gave_way, None if low_self == math.inf else low_self, ddq, settled is not None)
-
-    def _floor_person_rows(self, b: np.ndarray, soft: np.ndarray, rows: BarrierRows, backs_out: bool) -> None:
-        """The protective stop's rows (module docstring), in place in ``b`` (M,), the stacked rows'
-        bounds: every robot–person row (``soft`` (M,)) at its floor, b_i ← min(b_i, 0); if ``backs_out``
-        (not the stop at the fixed body), while the person stands still
-        (:attr:`~services.safety.barriers.pairs.CollisionGeometry.person_speed` ≤ :data:`STILL_SPEED`
-        for :data:`STILL_FOR_S`)
-        and every pair row whose person capsule is inside for certain (:meth:`BarrierRows.person_inside`)
-        is an arm capsule's, those rows keep b_i ← min(b_i, ``backout``) instead (module docstring,
-        "Backing out from a person who stands inside")."""
-        backout = self.params.backout
-        intruded = None
-        if backs_out and backout > 0.0 and self._still_for >= STILL_FOR_S:
-            intruded = rows.person_inside(-VIOLATION_TOL)
-            if (intruded & ~self._arm_person_rows).any():  # inside the torso's margin too: no back-out
-                intruded = None
-        kept = None if intruded is None else np.minimum(b[: intruded.shape[0]][intruded], backout)
-        np.minimum(b, 0.0, out=b, where=soft)
-        if intruded is not None:
-            b[: intruded.shape[0]][intruded] = kept
-
-    @staticmethod
-    def _intruded(rows: BarrierRows) -> bool:
-        """Whether a person capsule is inside a robot capsule's margin: some enabled robot–person
-        row of the pair barrier's ``rows`` has h < −:data:`VIOLATION_TOL` (the intrusion stop, module
-        docstring). A row against a capsule swept ahead (``safety.human_predict_s``) counts only when
-        the capsule as measured is inside for certain, h + 2·sweep < −tol (:attr:`BarrierRows.sweep`):
-        a person expected to come closer is kept out by the rows, not met by a stop."""
-        if not rows.min_h_all < -VIOLATION_TOL:  # the smallest h of all enabled rows: none is inside
-            return False
-        return bool(rows.person_inside(-VIOLATION_TOL).any())
-
-    def _fixed_body_row_fails(self, b: np.ndarray) -> bool:
-        """Whether a robot–person row of a capsule no joint moves asks for a positive rate (``b`` (M,)
-        the stacked rows' bounds; A_i = 0 there, so A_i u ≥ b_i > 0 fails whatever u is): the person
-        is inside its margin or reaches it within the look-ahead (module docstring)."""
-        return self._any_positive.call(b, self._fixed_person_rows)
 
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
                       n_pair: int) -> tuple:

@@ -1,0 +1,212 @@
+"""The safety filter's protective stops (ISO/TS 15066 speed and separation monitoring): when a step
+stops imitating and aims at rest, what the person rows ask for then, and how a stop holds the
+robot where it is.
+
+:class:`~services.safety.filter.SafetyFilter` asks its :class:`ProtectiveStop` at every step
+(:meth:`ProtectiveStop.decide`, :meth:`ProtectiveStop.floor_person_rows`,
+:meth:`ProtectiveStop.settles`, :meth:`ProtectiveStop.stepped`). The third stop, when person rows
+give way in the relaxed solve, belongs to the relaxation and is described with it in
+:mod:`services.safety.filter`. Every stop only lowers soft (robot–person) rows' b, never below
+the floor min(b_i, 0) the relaxation gives them anyway, so the filter's feasibility argument holds
+as it is.
+
+**Protective stop at the robot's fixed body.** A robot–person row of a robot capsule that no
+joint moves (a thigh: A_i = 0) cannot be honoured by any u once it asks for a positive rate,
+b_i = −γ (h_i − T a_i) + a_i > 0: the person is inside the legs' margin, or approaching it at a_i
+will be within the look-ahead, i.e. h_i < a_i (T + 1/γ). Such a person is walking into a robot that
+cannot get out of the way, known only as they were a camera latency earlier. Then every
+robot–person row keeps only its floor, b_i ← min(b_i, 0) (never closer to any perceived capsule,
+no retreat demanded), and the target is rest (u_ref = 0): the robot brakes within the acceleration
+bound — starting as the person approaches, so that it has stopped by the time they arrive — and
+stands still until no such row fails. Retreating instead — the CBF's b_i = −γ h_i > 0, arms and
+waist at their velocity bounds away from a person 60 ms old — swept other surfaces of the rotating
+links into the person: on the development set's two walk-throughs 543 of 586 robot-caused contact
+steps came while the person stood inside the pelvis or legs. Only soft rows change and only
+downward, so the feasibility argument of :mod:`services.safety.filter` holds as it is (u = 0 satisfies a row
+A_i u ≥ min(b_i, 0)).
+
+**Protective stop while a person is inside a margin** (``on_intrusion`` "stop", the default, or
+"stop_on_give_way"): the same stop — every robot–person row keeps only its floor,
+b_i ← min(b_i, 0), the target is rest — whenever some enabled robot–person row of the pair
+barrier has h_i < −``VIOLATION_TOL``: a person capsule is inside a robot capsule's margin (φ plus
+the person margin), which the rows never let the robot do, so the person moved in, faster than
+the robot could leave or while the camera still showed them elsewhere. Retreating from them
+(``"retreat"``: the violated rows demand A_i u ≥ −γ h_i > 0, the least total violation first)
+moves the robot along normals of capsules seen a camera latency ago, at up to γ|h| (0.9 m/s at
+h = −90 mm): on the test variants of the development clips (a full turn in place, a step of 1 m toward the robot) that swung hands
+into true thighs at 1 m/s and leaned the torso into a true forearm while the perceived pairs
+opened. The stop ends as soon as no person row is inside (h ≥ −1 mm) and imitation resumes under
+the ordinary rows. With the person swept ahead (``safety.human_predict_s``: each person capsule
+widened by ``sweep`` to enclose where its velocity carries it) a row counts as inside only when
+the capsule as measured is, for certain: its axis lies within ``sweep`` of the swept axis, so its
+h ≤ h_swept + 2·sweep, and the stop takes h_swept + 2·sweep < −1 mm. A person only expected to come
+in is kept out by the (swept) rows, not met by a robot standing still. Like the stop above it
+only lowers soft rows' b, so the feasibility argument is unchanged. Measured (README "The
+intrusion stop"): the distance the robot closed into the true person 2.4–5× smaller in contact and
+1.7–3.5× within φ, at 11–30 % more contact steps, which are the person's.
+
+**Backing out from a person who stands inside.** The intrusion stop holds the robot while a person
+is inside a margin; a person who *stays* there (standing beside the robot with a hand hanging into
+its forearm's margin: a broad person where a narrow one fits) would freeze it for as long as they
+stand. So the stop backs out of them when
+
+- the person stands still: every present person capsule's endpoints slower than
+  :data:`STILL_SPEED` (0.15 m/s: a standing person sways by a few cm/s, a walking one carries the
+  torso at ≥ 0.5 m/s) for the last :data:`STILL_FOR_S` (0.5 s: longer than a keypoint glitch or the
+  turning point of a swing); unknown velocities (a stale person, a capsule held from memory) count
+  as moving, and
+- they are inside the margins of the robot's arms only (not the torso's, not the fixed body's).
+
+Then each pair row whose person capsule is inside for certain (``person_inside``, as the stop
+decides) keeps b_i ← min(b_i, c) instead of its floor, c = ``backout``
+(``safety.intrusion_backout_mps``, 0.05 m/s): the arm backs out along the pair's normal at up to c,
+the least motion that does so (the target is still rest), until no row is inside and imitation
+resumes under the ordinary rows. A still person is where the camera showed them a latency ago, so
+backing out of their capsules moves no surface toward where they really are, and every other
+person row keeps at least its floor. Otherwise the stop stays as it is: backing out of a moving
+person's capsules, a camera latency old, is what ``retreat`` does; a person inside the fixed body
+is walking into the robot (on the test variants a person stepping slowly in was backed out of into
+1,198 robot-caused contact steps); backing out of a person inside the torso's margin leans the
+torso, whose mesh meets them where its capsule's closest point is not closing (the same person
+stepping in: 284). The back-out rows are lowered, never raised (min(b_i, c) ≤ b_i), and their relaxation floor
+stays min(b_i, 0) = 0, so the feasibility argument holds as it is. Measured (README "Backing
+out from a person who stands inside"): a broad person (shoulders 0.37 m) dancing beside the robot,
+4,113 contact steps → 0.
+
+**The stop holds the robot where it is.** A servo tracks q_cbf with a lag: braking within the
+acceleration bound leaves the joints 1–20 mrad behind the command, and once the command is at rest
+they close that gap, the robot moving on into a person after the filter stopped it (traced with a
+noisy camera: most robot-caused contact steps were u* = 0 with a joint still converging onto
+q_cbf). A step *aims at rest* when it is a protective stop (any of the above) or a relaxed step
+whose person rows gave way (stage 2 aimed at ū). q_cbf is first brought to the robot's joints
+``q_robot`` (measured, extrapolated to the step by their velocity; the caller's) on the first step
+of a protective stop decided from its rows, and once on the first step after one that aimed at
+rest and commanded it (|u*| ≤ :data:`AT_REST`: the braking is over, the lag it left is not),
+once per run of steps aiming at rest. It is moved by at most [u_min, u_max]·Δt per joint and kept
+within the joint limits; the rows are evaluated there and the step runs from there, its u* still
+braking from u_prev within the acceleration bound. The command moves to where the robot already
+is, so the robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those steps
+(:attr:`~services.safety.filter.StepResult.settled` says which; the service's command carries it). Twice per run of steps
+aiming at rest at most, and never while imitating: a servo with a steady error (gravity it does
+not compensate) would sag by that error at every settle, and a command at rest during imitation
+(a still person, K (q_nom − q_cbf) decayed to nothing) settling onto a servo stuck within its
+friction would start a slow cycle. A missing or non-finite ``q_robot`` settles nothing. Measured
+(README "The stop holds the robot where it is"): with a noisy camera robot-caused contact steps
+289 → 51 and approach steps 298 → 78 over three seeds. Every row is evaluated at the settled
+pose, so the feasibility argument holds there as it is (a hard row the few mrad carried past its
+boundary, which the self margin makes unlikely, is a violated one and softened as such).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.safety.barriers.kernel import any_positive
+from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
+from services.safety.compiled import BoundKernel
+from shared.config import IntrusionResponse
+from shared.names import CAPSULE_NAMES
+
+#: the ``on_intrusion`` values with the intrusion stop
+STOPS = (IntrusionResponse.STOP.value, IntrusionResponse.STOP_ON_GIVE_WAY.value)
+#: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
+VIOLATION_TOL = 1e-3
+#: a person whose every capsule endpoint moves slower than this (m/s) for STILL_FOR_S stands still ("Backing out")
+STILL_SPEED = 0.15
+#: how long (s) a person must have been slower than STILL_SPEED to stand still: longer than a keypoint glitch
+#: or the turning point of a swing
+STILL_FOR_S = 0.5
+#: a command whose every |u*| is at most this (rad/s) is at rest (a protective stop's braking is over)
+AT_REST = 1e-9
+
+
+def intruded(rows: BarrierRows) -> bool:
+    """Whether a person capsule is inside a robot capsule's margin: some enabled robot–person
+    row of the pair barrier's ``rows`` has h < −:data:`VIOLATION_TOL` (the intrusion stop). A row
+    against a capsule swept ahead (``safety.human_predict_s``) counts only when the capsule as
+    measured is inside for certain, h + 2·sweep < −tol (:attr:`BarrierRows.sweep`): a person
+    expected to come closer is kept out by the rows, not met by a stop."""
+    if not rows.min_h_all < -VIOLATION_TOL:  # the smallest h of all enabled rows: none is inside
+        return False
+    return bool(rows.person_inside(-VIOLATION_TOL).any())
+
+
+class ProtectiveStop:
+    """The stops of one filter: which rows they watch (fixed from the pair barrier and the robot's
+    Jacobians at construction) and what they remember between steps (whether the last step aimed
+    at rest, whether its settle at rest was done, how long the person has stood still)."""
+
+    def __init__(self, barrier: CollisionGeometry, jacobians: np.ndarray) -> None:
+        """``barrier``: the filter's pair barrier (its rows come first in the stacked rows);
+        ``jacobians`` (7, 2, 3, n): the robot capsules' endpoint Jacobians at any pose (a capsule no
+        joint moves has a zero one at every pose)."""
+        self._barrier = barrier
+        fixed = ~jacobians.reshape(len(jacobians), -1).any(axis=1)
+        row_robot = np.asarray(barrier.pairs.first)[barrier.row_pair]
+        person = ~barrier.pairs.is_self[barrier.row_pair]
+        #: the stacked robot–person rows of robot capsules no joint moves (zero Jacobian: a thigh),
+        #: whose b > 0 starts the stop at the fixed body
+        self._fixed_person_rows = np.flatnonzero(fixed[row_robot] & person)
+        #: (m,) bool: the pair barrier's robot–person rows of an arm capsule (upper arm, forearm), the
+        #: only ones backed out of
+        self._arm_person_rows = np.array(["arm" in name for name in CAPSULE_NAMES])[row_robot] & person
+        self._any_positive = BoundKernel(any_positive)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the steps before (the filter restarts)."""
+        self._aimed_rest = False  # the last step aimed at rest (a protective stop, or person rows gave way)
+        self._rested = False  # since the steps began to aim at rest, a settle at rest was done
+        self._still_for = 0.0  # s the person has been slower than STILL_SPEED
+
+    def at_fixed_body(self, b: np.ndarray) -> bool:
+        """Whether a robot–person row of a capsule no joint moves asks for a positive rate (``b``
+        (M,) the stacked rows' bounds; A_i = 0 there, so A_i u ≥ b_i > 0 fails whatever u is): the
+        person is inside its margin or reaches it within the look-ahead."""
+        return self._any_positive.call(b, self._fixed_person_rows)
+
+    def decide(self, b: np.ndarray, rows: BarrierRows, on_intrusion: str, dt: float) -> tuple[bool, bool]:
+        """(whether this step is a protective stop, whether it is the one at the fixed body), from
+        the stacked rows' bounds ``b`` (M,) and the pair barrier's ``rows``; counts ``dt`` (s)
+        toward the person standing still."""
+        self._still_for = self._still_for + dt if self._barrier.person_speed <= STILL_SPEED else 0.0
+        fixed = self.at_fixed_body(b)
+        return fixed or (on_intrusion in STOPS and intruded(rows)), fixed
+
+    def floor_person_rows(self, b: np.ndarray, soft: np.ndarray, rows: BarrierRows, backs_out: bool,
+                          backout: float) -> None:
+        """A stop's rows, in place in ``b`` (M,), the stacked rows' bounds: every robot–person row
+        (``soft`` (M,)) at its floor, b_i ← min(b_i, 0); if ``backs_out`` (not the stop at the
+        fixed body), once the person has stood still (:attr:`CollisionGeometry.person_speed` ≤
+        :data:`STILL_SPEED` for :data:`STILL_FOR_S`) and every pair row whose person capsule is
+        inside for certain (:meth:`BarrierRows.person_inside`) is an arm capsule's, those rows keep
+        b_i ← min(b_i, ``backout``) (m/s) instead ("Backing out from a person who stands inside")."""
+        intruded_rows = None
+        if backs_out and backout > 0.0 and self._still_for >= STILL_FOR_S:
+            intruded_rows = rows.person_inside(-VIOLATION_TOL)
+            if (intruded_rows & ~self._arm_person_rows).any():  # inside the torso's margin too: no back-out
+                intruded_rows = None
+        kept = None if intruded_rows is None else np.minimum(b[: intruded_rows.shape[0]][intruded_rows], backout)
+        np.minimum(b, 0.0, out=b, where=soft)
+        if intruded_rows is not None:
+            b[: intruded_rows.shape[0]][intruded_rows] = kept
+
+    def settles(self, stop: bool, u_prev: np.ndarray | None) -> bool:
+        """Whether this step brings q_cbf to the robot ("The stop holds the robot where it is"):
+        ``stop`` (this step is a protective stop decided from its rows) and the last step did not
+        aim at rest (the stop's first step); or the last step aimed at rest and commanded it
+        (``u_prev``, the last command: |u*| ≤ :data:`AT_REST`), the first such step since the steps
+        began to aim at rest (marked done here; :meth:`stepped` clears the mark once a step no
+        longer aims at rest)."""
+        if stop and not self._aimed_rest:
+            return True
+        if not self._aimed_rest or self._rested or u_prev is None or float(np.abs(u_prev).max()) > AT_REST:
+            return False
+        self._rested = True
+        return True
+
+    def stepped(self, aimed_rest: bool) -> None:
+        """Record that the step just taken aimed at rest (a protective stop, or a relaxed step whose
+        person rows gave way) or did not."""
+        self._aimed_rest = aimed_rest
+        self._rested = self._rested and aimed_rest
