@@ -22,8 +22,8 @@ stands still until no such row fails. Retreating instead — the CBF's b_i = −
 waist at their velocity bounds away from a person 60 ms old — swept other surfaces of the rotating
 links into the person: on the development set's two walk-throughs 543 of 586 robot-caused contact
 steps came while the person stood inside the pelvis or legs. Only soft rows change and only
-downward, so the feasibility argument of :mod:`services.safety.filter` holds as it is (u = 0 satisfies a row
-A_i u ≥ min(b_i, 0)).
+downward, so the feasibility argument of :mod:`services.safety.filter` holds as it is (u = 0
+satisfies a row A_i u ≥ min(b_i, 0)).
 
 **Protective stop while a person is inside a margin** (``on_intrusion`` "stop", the default, or
 "stop_on_give_way"): the same stop — every robot–person row keeps only its floor,
@@ -33,9 +33,9 @@ the person margin), which the rows never let the robot do, so the person moved i
 the robot could leave or while the camera still showed them elsewhere. Retreating from them
 (``"retreat"``: the violated rows demand A_i u ≥ −γ h_i > 0, the least total violation first)
 moves the robot along normals of capsules seen a camera latency ago, at up to γ|h| (0.9 m/s at
-h = −90 mm): on the test variants of the development clips (a full turn in place, a step of 1 m toward the robot) that swung hands
-into true thighs at 1 m/s and leaned the torso into a true forearm while the perceived pairs
-opened. The stop ends as soon as no person row is inside (h ≥ −1 mm) and imitation resumes under
+h = −90 mm): on the test variants of the development clips (a full turn in place, a step of 1 m
+toward the robot) that swung hands into true thighs at 1 m/s and leaned the torso into a true
+forearm while the perceived pairs opened. The stop ends as soon as no person row is inside (h ≥ −1 mm) and imitation resumes under
 the ordinary rows. With the person swept ahead (``safety.human_predict_s``: each person capsule
 widened by ``sweep`` to enclose where its velocity carries it) a row counts as inside only when
 the capsule as measured is, for certain: its axis lies within ``sweep`` of the swept axis, so its
@@ -68,8 +68,8 @@ person's capsules, a camera latency old, is what ``retreat`` does; a person insi
 is walking into the robot (on the test variants a person stepping slowly in was backed out of into
 1,198 robot-caused contact steps); backing out of a person inside the torso's margin leans the
 torso, whose mesh meets them where its capsule's closest point is not closing (the same person
-stepping in: 284). The back-out rows are lowered, never raised (min(b_i, c) ≤ b_i), and their relaxation floor
-stays min(b_i, 0) = 0, so the feasibility argument holds as it is. Measured (README "Backing
+stepping in: 284). The back-out rows are lowered, never raised (min(b_i, c) ≤ b_i), and their
+relaxation floor stays min(b_i, 0) = 0, so the feasibility argument holds as it is. Measured (README "Backing
 out from a person who stands inside"): a broad person (shoulders 0.37 m) dancing beside the robot,
 4,113 contact steps → 0.
 
@@ -86,9 +86,9 @@ once per run of steps aiming at rest. It is moved by at most [u_min, u_max]·Δt
 within the joint limits; the rows are evaluated there and the step runs from there, its u* still
 braking from u_prev within the acceleration bound. The command moves to where the robot already
 is, so the robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those steps
-(:attr:`~services.safety.filter.StepResult.settled` says which; the service's command carries it). Twice per run of steps
-aiming at rest at most, and never while imitating: a servo with a steady error (gravity it does
-not compensate) would sag by that error at every settle, and a command at rest during imitation
+(:attr:`~services.safety.filter.StepResult.settled` says which; the service's command carries
+it). Twice per run of steps aiming at rest at most, and never while imitating: a servo with a
+steady error (gravity it does not compensate) would sag by that error at every settle, and a command at rest during imitation
 (a still person, K (q_nom − q_cbf) decayed to nothing) settling onto a servo stuck within its
 friction would start a slow cycle. A missing or non-finite ``q_robot`` settles nothing. Measured
 (README "The stop holds the robot where it is"): with a noisy camera robot-caused contact steps
