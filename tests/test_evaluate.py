@@ -15,6 +15,7 @@ import pytest
 from safemimic.evaluate.evaluation import evaluate, evaluation_config
 from safemimic.evaluate.goals import goal_report, goals_markdown
 from safemimic.evaluate.metrics import RUN_KEYS, TIMING_KEYS, deterministic_part
+from safemimic.evaluate.variants import broadened, read_recording
 from services.perception.placement import Placement
 from services.perception.scenarios import get_scenario, scenario_recording
 from shared.config import RetargetMethod, TargetPath
@@ -178,6 +179,30 @@ def test_real_motion_capture_with_walking_and_turning_evaluates() -> None:
     for run in ("cbf", "nominal"):
         assert metrics[run]["nan_count"] == 0
     assert metrics["cbf"]["min_h_self"] >= -1e-3  # self pairs: the robot alone decides, always kept
+
+
+def test_a_broad_person_standing_in_an_arms_margin_is_backed_out_of(tmp_path: Path) -> None:
+    """The development dance by a person whose shoulders are 0.37 m apart (the broadened variant),
+    beside the robot: for its first seconds they stand with the right forearm inside the margin of
+    the robot's left forearm at home. With backing out (the default) the robot leaves that margin
+    and never touches them; with it off the intrusion stop holds the robot where it is, in contact
+    most of the time. Neither is robot-caused."""
+    clip = MOCAP_DIR / "bandai1_stand_then_dance.npz"
+    if not clip.is_file():
+        pytest.skip(f"motion capture clip not found at {clip}")
+    fields, names = read_recording(clip)
+    broad = tmp_path / "broad.npz"
+    np.savez(broad, **{**fields, "xyz": broadened(fields["xyz"], names, 0.37)})
+    runs = {}
+    for backout in (0.05, 0.0):
+        conf = evaluation_config(str(broad), None, "side-by-side", None)
+        conf = conf.model_copy(update={"safety": conf.safety.model_copy(update={"intrusion_backout_mps": backout})})
+        runs[backout] = evaluate(conf, seconds=4.0).metrics()["cbf"]
+    assert evaluation_config(str(broad), None, "side-by-side", None).safety.intrusion_backout_mps == 0.05  # default
+    assert runs[0.0]["true_contacts_robot_human"] > 1000 and runs[0.0]["min_h_human"] < -0.05  # frozen inside
+    assert runs[0.05]["true_contacts_robot_human"] == 0 and runs[0.05]["min_h_human"] > runs[0.0]["min_h_human"]
+    for run in runs.values():
+        assert run["robot_caused_contact_steps"] == 0 and run["nan_count"] == 0 and run["min_h_self"] >= -1e-3
 
 
 def test_unusable_input_exits_2_with_the_reason(tmp_path: Path) -> None:
