@@ -595,10 +595,11 @@ def test_config_update_swaps_pipeline_and_rate(service: SafetyService) -> None:
     # a parameter-only change is applied in place: same pipeline, new FilterParams (a margin home
     # keeps: every self pair is >= 3.9 cm apart there, so q_cbf stays at home below)
     pipeline = service.pipeline
-    full["safety"]["phi"] = 0.03
+    full["safety"].update(phi=0.03, intrusion_backout_mps=0.02)
     service.on_config(ConfigUpdate(stamp=0.0, version=2, config=full))
     service.tick()
     assert service.pipeline is pipeline and service.pipeline.filter.params.phi == 0.03
+    assert service.pipeline.filter.params.intrusion_backout_mps == 0.02
     assert service.config_version == 2
     # a structural one (pair preset) and a retargeting change: new pipeline at the next step
     full["safety"].update(pairs="paper72", rate_hz=250.0, gamma=3.0)

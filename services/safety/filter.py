@@ -78,7 +78,7 @@ monitoring): a step aims at rest (u_ref = 0) and every robot–person row keeps 
 b_i ← min(b_i, 0), while a person is inside the margin of a robot capsule no joint moves (or will
 be within the look-ahead) or, with ``on_intrusion`` "stop" (the default), inside any robot
 capsule's margin; a person who has stood still inside the arms' margins only is backed out of
-(b_i ← min(b_i, ``backout``)). On a stop's first step, and once its command is at rest, q_cbf is
+(b_i ← min(b_i, ``intrusion_backout_mps``)). On a stop's first step, and once its command is at rest, q_cbf is
 first brought to the robot's measured joints ``q_robot`` (at most [u_min, u_max]·Δt per joint,
 within the joint limits; :attr:`StepResult.settled`), so the servos do not close their tracking
 lag into the person, and the rows are evaluated there. Stops only lower soft rows' b, so the
@@ -170,11 +170,12 @@ class FilterParams:
     accel_max: np.ndarray | None = None  # |u − u_prev|/Δt bound (n,) rad/s²; None: none
     self_margin: float = 0.0  # m the hard distance rows aim beyond φ (module docstring)
     on_intrusion: str = "stop"  # "stop" | "retreat" | "stop_on_give_way" (module docstring)
-    backout: float = 0.0  # m/s an arm backs out of a still person during a stop (services.safety.protective_stop)
+    intrusion_backout_mps: float = 0.0  # m/s an arm backs out of a still person in a stop (services.safety.protective_stop)
 
     def __post_init__(self) -> None:
         """Scalars as float, arrays as contiguous float64 (the compiled step's bound argument types)."""
-        for name in ("gamma", "phi", "gain", "relax_penalty", "human_lookahead_s", "self_margin", "backout"):
+        for name in ("gamma", "phi", "gain", "relax_penalty", "human_lookahead_s", "self_margin",
+                     "intrusion_backout_mps"):
             object.__setattr__(self, name, float(getattr(self, name)))
         for name in ("weights", "u_max", "u_min", "accel_max"):
             value = getattr(self, name)
@@ -195,7 +196,7 @@ class FilterParams:
             accel_max=None if safety.accel_max is None else np.asarray(safety.accel_max, dtype=np.float64),
             self_margin=safety.self_margin,
             on_intrusion=IntrusionResponse(safety.on_intrusion).value,
-            backout=safety.intrusion_backout_mps,
+            intrusion_backout_mps=safety.intrusion_backout_mps,
         )
 
 
@@ -399,7 +400,7 @@ class SafetyFilter:
                 A_all, b_all, inside, low_self, rows = self._write_rows(q)
         if stop:  # the protective stop (services.safety.protective_stop): rest is the target, person rows their floor
             q_nom, dq_nom = q, self._rest
-            self.stops.floor_person_rows(b_all, soft_all, rows, not fixed_stop, p.backout)
+            self.stops.floor_person_rows(b_all, soft_all, rows, not fixed_stop, p.intrusion_backout_mps)
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
         if q_nom.shape != q.shape or dq_nom.shape != q.shape:

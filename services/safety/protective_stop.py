@@ -58,8 +58,8 @@ stand. So the stop backs out of them when
 - they are inside the margins of the robot's arms only (not the torso's, not the fixed body's).
 
 Then each pair row whose person capsule is inside for certain (``person_inside``, as the stop
-decides) keeps b_i ← min(b_i, c) instead of its floor, c = ``backout``
-(``safety.intrusion_backout_mps``, 0.05 m/s): the arm backs out along the pair's normal at up to c,
+decides) keeps b_i ← min(b_i, c) instead of its floor, c = ``safety.intrusion_backout_mps``
+(0.05 m/s): the arm backs out along the pair's normal at up to c,
 the least motion that does so (the target is still rest), until no row is inside and imitation
 resumes under the ordinary rows. A still person is where the camera showed them a latency ago, so
 backing out of their capsules moves no surface toward where they really are, and every other
