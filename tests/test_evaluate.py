@@ -197,7 +197,9 @@ def test_a_broad_person_standing_in_an_arms_margin_is_backed_out_of(tmp_path: Pa
     for backout in (0.05, 0.0):
         conf = evaluation_config(str(broad), None, "side-by-side", None)
         conf = conf.model_copy(update={"safety": conf.safety.model_copy(update={"intrusion_backout_mps": backout})})
-        runs[backout] = evaluate(conf, seconds=4.0).metrics()["cbf"]
+        metrics = evaluate(conf, seconds=4.0).metrics()
+        assert metrics["input"]["intrusion_backout_mps"] == backout and metrics["input"]["on_intrusion"] == "stop"
+        runs[backout] = metrics["cbf"]
     assert evaluation_config(str(broad), None, "side-by-side", None).safety.intrusion_backout_mps == 0.05  # default
     assert runs[0.0]["true_contacts_robot_human"] > 1000 and runs[0.0]["min_h_human"] < -0.05  # frozen inside
     assert runs[0.05]["true_contacts_robot_human"] == 0 and runs[0.05]["min_h_human"] > runs[0.0]["min_h_human"]

@@ -72,7 +72,7 @@ from safemimic.evaluate.fidelity import direction_errors, fidelity
 from safemimic.evaluate.person import CameraModel, HumanTrack, TruePerson
 from safemimic.evaluate.source import EvaluationInput
 from safemimic.evaluate.truth import CLOSING_SPEED
-from shared.config import StackConfig
+from shared.config import IntrusionResponse, StackConfig
 from shared.messages import SafetyMode
 
 RUN_KEYS: tuple[str, ...] = (
@@ -205,6 +205,8 @@ def input_metrics(
         "gain": s.gain,
         "human_velocity_term": s.human_velocity_term,
         "human_predict_s": s.human_predict_s,
+        "on_intrusion": IntrusionResponse(s.on_intrusion).value,
+        "intrusion_backout_mps": s.intrusion_backout_mps,
         **camera.settings(),
         "self_pairs": int(np.count_nonzero(cbf.pairs.is_self)),
         "human_pairs": int(np.count_nonzero(~cbf.pairs.is_self)),
