@@ -96,12 +96,12 @@ def side_stepped(xyz: np.ndarray, names: list[str], side_m: float = 0.5) -> np.n
 def mirror_order(names: list[str]) -> np.ndarray:
     """(K,) for each keypoint the index of its mirror image in ``names``: left_X ↔ right_X (itself
     when it has no side or its other side is missing)."""
-    def other(name: str) -> str:
+    def index_of_other(i: int, name: str) -> int:
         for a, b in (("left_", "right_"), ("right_", "left_")):
-            if name.startswith(a):
-                return b + name.removeprefix(a)
-        return name
-    return np.array([names.index(other(n)) if other(n) in names else i for i, n in enumerate(names)])
+            if name.startswith(a) and b + name.removeprefix(a) in names:
+                return names.index(b + name.removeprefix(a))
+        return i
+    return np.array([index_of_other(i, n) for i, n in enumerate(names)])
 
 
 def mirrored(xyz: np.ndarray, names: list[str]) -> np.ndarray:

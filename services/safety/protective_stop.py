@@ -181,15 +181,14 @@ class ProtectiveStop:
         :data:`STILL_SPEED` for :data:`STILL_FOR_S`) and every pair row whose person capsule is
         inside for certain (:meth:`BarrierRows.person_inside`) is an arm capsule's, those rows keep
         b_i ← min(b_i, ``backout``) (m/s) instead ("Backing out from a person who stands inside")."""
-        intruded_rows = None
+        pair_b, kept = b[: self._arm_person_rows.shape[0]], None  # the pair rows come first
         if backs_out and backout > 0.0 and self._still_for >= STILL_FOR_S:
-            intruded_rows = rows.person_inside(-VIOLATION_TOL)
-            if (intruded_rows & ~self._arm_person_rows).any():  # inside the torso's margin too: no back-out
-                intruded_rows = None
-        kept = None if intruded_rows is None else np.minimum(b[: intruded_rows.shape[0]][intruded_rows], backout)
+            inside = rows.person_inside(-VIOLATION_TOL)
+            if not (inside & ~self._arm_person_rows).any():  # inside the torso's margin too: no back-out
+                kept = np.minimum(pair_b[inside], backout)
         np.minimum(b, 0.0, out=b, where=soft)
-        if intruded_rows is not None:
-            b[: intruded_rows.shape[0]][intruded_rows] = kept
+        if kept is not None:
+            pair_b[inside] = kept
 
     def settles(self, stop: bool, u_prev: np.ndarray | None) -> bool:
         """Whether this step brings q_cbf to the robot ("The stop holds the robot where it is"):
