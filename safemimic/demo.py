@@ -332,12 +332,16 @@ def _exited(children: list[Child]) -> bool:
 
 
 def _watchdog_column(status: SafetyStatus) -> str:
-    """The safety service's tripped watchdogs, e.g. "  human stale, executor holding" ('' when none)."""
+    """The safety service's tripped watchdogs and what its stop does, e.g. "  human stale, backing
+    out, camera 80 ms late" ('' when none)."""
     flags = {"human stale": status.human_stale, "perception lost": status.human_source_lost,
              "person lost (held)": status.human_lost,
              "joint state stale": status.joint_state_stale, "executor holding": status.executor_holding,
-             "resyncing": status.resyncing, "person intrusion": status.person_intrusion}
+             "resyncing": status.resyncing, "person intrusion": status.person_intrusion,
+             "backing out": status.backing_out}
     tripped = [name for name, on in flags.items() if on]
+    if status.human_lateness_ms >= 1.0:
+        tripped.append(f"camera {status.human_lateness_ms:.0f} ms late")
     if status.relaxed_pairs:
         tripped.append(f"gave way: {', '.join(status.relaxed_pairs[:3])}{' …' if len(status.relaxed_pairs) > 3 else ''}")
     return f"  {', '.join(tripped)}" if tripped else ""

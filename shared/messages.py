@@ -214,11 +214,11 @@ class SafetyStatus(Message):
 
     ``q_nom`` and ``binding_pairs`` describe the control tick that published it: the target the
     filter tracked and the pairs whose CBF rows bound u* (what the live viewer draws). Schema
-    version 2 added both.
+    version 2 added both; version 3 added ``backing_out`` and ``human_lateness_ms``.
     """
 
     SCHEMA_NAME: ClassVar[str] = "SafetyStatus"
-    SCHEMA_VERSION: ClassVar[int] = 2
+    SCHEMA_VERSION: ClassVar[int] = 3
     mode: SafetyMode = Field(strict=False)  # the wire carries the value
     min_h_self: float | None = Field(description="min h over self pairs (m); None if no pair")
     min_h_human: float | None = Field(description="min h over robot–human pairs (m); None if no human")
@@ -250,6 +250,14 @@ class SafetyStatus(Message):
     person_intrusion: bool = Field(
         default=False, description="since the previous status, a person capsule was inside a robot capsule's margin (h < 0): the "
         "robot stopped or retreated (safety.on_intrusion)"
+    )
+    backing_out: bool = Field(
+        default=False, description="since the previous status, the intrusion stop backed a robot arm out of a person "
+        "standing still inside its margin (safety.intrusion_backout_mps)"
+    )
+    human_lateness_ms: float = Field(
+        default=0.0, ge=0, description="the newest HumanState was published this much later after its camera frame than "
+        "usual (ms; 0 on time): the person capsules are swept ahead by this much more"
     )
     watchdog_trips: dict[str, int] = Field(
         default_factory=dict, description="times each watchdog tripped: human_state, human_source, human_lost, "

@@ -81,14 +81,16 @@ class ApiServer:
 class FakeSafety:
     """Plays the safety service on the bus: applies every ConfigUpdate (if ``ack``) and reports
     the applied version in a SafetyStatus at 50 Hz, with the given live values (``intrusion``: every
-    status reports a person inside a margin)."""
+    status reports a person inside a margin; ``backing_out``: and the stop backing out of them;
+    ``lateness_ms``: the person's states that late)."""
 
     def __init__(self, bus: Bus, ack: bool = True, report_version: int | None = None, mode: SafetyMode = SafetyMode.ACTIVE,
                  h_self: float = 0.031, h_human: float | None = 0.142, robot_id: str | None = None,
-                 intrusion: bool = False) -> None:
+                 intrusion: bool = False, backing_out: bool = False, lateness_ms: float = 0.0) -> None:
         self.version = report_version or 0
         self.ack = ack and report_version is None
         self.mode, self.h_self, self.h_human, self.intrusion = mode, h_self, h_human, intrusion
+        self.backing_out, self.lateness_ms = backing_out, lateness_ms
         self.published = 0
         self._publisher = bus.publisher("safety/status", robot_id=robot_id)
         bus.subscribe("config", self._on_config, robot_id=robot_id)
@@ -107,6 +109,7 @@ class FakeSafety:
                     active_constraints=3, total_constraints=63, qp_solve_time_ms=0.012 + 0.001 * (self.published % 5),
                     step_time_ms=0.2, config_version=self.version, backend="daqp", executor_holding=True,
                     watchdog_trips={"executor_command": 2}, person_intrusion=self.intrusion,
+                    backing_out=self.backing_out, human_lateness_ms=self.lateness_ms,
                 )
             )
             self.published += 1
@@ -476,7 +479,8 @@ def test_calibrate_captures_theta_home_from_the_newest_human_state(api: ApiServe
 
 
 def test_status_reports_the_newest_safety_status(api: ApiServer, bus: Bus) -> None:
-    with FakeSafety(bus, mode=SafetyMode.RELAXED, h_self=-0.004, h_human=None, ack=False) as fake:
+    with FakeSafety(bus, mode=SafetyMode.RELAXED, h_self=-0.004, h_human=None, ack=False, intrusion=True,
+                    backing_out=True, lateness_ms=38.5) as fake:
         wait_until(lambda: api.http.get("/api/status").json()["mode"] == "relaxed")
         status = api.http.get("/api/status").json()
     assert status["available"] is True and status["h_min_self"] == -0.004 and status["h_min_human"] is None
@@ -488,6 +492,7 @@ def test_status_reports_the_newest_safety_status(api: ApiServer, bus: Bus) -> No
                                    "joint_state_stale": False,
                                    "executor_holding": True, "resyncing": False}
     assert status["watchdog_trips"] == {"executor_command": 2}
+    assert status["person_intrusion"] is True and status["backing_out"] is True and status["human_lateness_ms"] == 38.5
 
 
 def test_status_stream_sends_config_and_status_events(api: ApiServer, bus: Bus) -> None:

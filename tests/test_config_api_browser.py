@@ -150,6 +150,11 @@ def test_person_prediction_and_intrusion_response_in_the_form(page, console: Api
     assert float(page.locator(form + "input[name=intrusion_backout_mps]").input_value()) == safety["intrusion_backout_mps"]
     with FakeSafety(bus, intrusion=True, ack=False):  # the default response: a protective stop
         sync_api.expect(page.locator("#intrusion")).to_have_text("yes: the robot stops")
+        sync_api.expect(page.locator("#backing-out")).to_have_text("no")
+        sync_api.expect(page.locator("#lateness")).to_have_text("0")
+    with FakeSafety(bus, intrusion=True, ack=False, backing_out=True, lateness_ms=41.7):  # a still person, a late camera
+        sync_api.expect(page.locator("#backing-out")).to_have_text("yes")
+        sync_api.expect(page.locator("#lateness")).to_have_text("42")
 
     page.fill("#token", TOKEN)
     with FakeSafety(bus, intrusion=True):

@@ -185,8 +185,10 @@ def test_a_broad_person_standing_in_an_arms_margin_is_backed_out_of(tmp_path: Pa
     """The development dance by a person whose shoulders are 0.37 m apart (the broadened variant),
     beside the robot: for its first seconds they stand with the right forearm inside the margin of
     the robot's left forearm at home. With backing out (the default) the robot leaves that margin
-    and never touches them; with it off the intrusion stop holds the robot where it is, in contact
-    most of the time. Neither is robot-caused."""
+    once they have been seen still for 0.5 s (from their second frame: one frame shows no motion),
+    touching them only while it does (their forearm sways onto its hand at 0.54 s, the back-out
+    begins at 0.59 s); with it off the intrusion stop holds the robot where it is, in contact most of
+    the time. Neither is robot-caused."""
     clip = MOCAP_DIR / "bandai1_stand_then_dance.npz"
     if not clip.is_file():
         pytest.skip(f"motion capture clip not found at {clip}")
@@ -202,7 +204,8 @@ def test_a_broad_person_standing_in_an_arms_margin_is_backed_out_of(tmp_path: Pa
         runs[backout] = metrics["cbf"]
     assert evaluation_config(str(broad), None, "side-by-side", None).safety.intrusion_backout_mps == 0.05  # default
     assert runs[0.0]["true_contacts_robot_human"] > 1000 and runs[0.0]["min_h_human"] < -0.05  # frozen inside
-    assert runs[0.05]["true_contacts_robot_human"] == 0 and runs[0.05]["min_h_human"] > runs[0.0]["min_h_human"]
+    assert runs[0.05]["true_contacts_robot_human"] <= 0.1 * runs[0.0]["true_contacts_robot_human"]  # the goal's 10 %
+    assert runs[0.05]["min_h_human"] > runs[0.0]["min_h_human"]
     for run in runs.values():
         assert run["robot_caused_contact_steps"] == 0 and run["nan_count"] == 0 and run["min_h_self"] >= -1e-3
 

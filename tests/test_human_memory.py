@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.safety.human_memory import FrameLateness, HumanMemory, external_capsules
+from services.safety.assembly import build_pipeline
+from services.safety.human_memory import FrameLateness, HumanMemory, external_capsules, seen_speed
+from shared.config import load_config
 from shared.messages import HumanState
 from shared.geometry import segment_closest_points
 from shared.names import CAPSULE_NAMES
@@ -166,3 +168,46 @@ def test_a_state_published_late_after_its_capture_is_swept_further_by_its_latene
     assert values[3] == pytest.approx(0.0)  # the 60 ms frame left the window: 200 ms is this perception's pace now
     first = FrameLateness().update(state(1.0, valid).model_copy(update={"stamp": 9.0, "capture_stamp": 1.0}))
     assert first == 0.0  # the first state is its own usual delay
+
+
+def test_how_fast_the_capsules_were_seen_to_move_between_states() -> None:
+    """``seen_speed``: the fastest endpoint displacement over the stamps' interval between the last
+    two messages; unknown (inf) for a first message and for a capsule that appears (perception
+    reports it with velocity 0), kept when the same message is taken again, 0 with nobody there."""
+    memory = HumanMemory()
+    first = state(1.0, all_but(RIGHT_FOREARM))
+    memory.update(first, 0.0, HOLD_S)
+    assert memory.seen_speed == np.inf and memory.capsules(7, True).seen_speed == np.inf
+    second = state(1.03, all_but(RIGHT_FOREARM)).model_copy(update={"stamp": 1 / 30})
+    memory.update(second, 1 / 30, HOLD_S)
+    assert memory.seen_speed == pytest.approx(0.9) and memory.capsules(7, True, 0.093).seen_speed == pytest.approx(0.9)
+    memory.update(second, 0.5, HOLD_S)  # the same message again (the human went stale): unchanged
+    assert memory.seen_speed == pytest.approx(0.9)
+    still = state(1.03, all_but(RIGHT_FOREARM, *LEGS)).model_copy(update={"stamp": 2 / 30})
+    memory.update(still, 2 / 30, HOLD_S)  # legs gone (held, not measured): the others did not move
+    assert memory.seen_speed == 0.0
+    appeared = state(1.03, np.ones(7, bool)).model_copy(update={"stamp": 3 / 30})
+    memory.update(appeared, 3 / 30, HOLD_S)  # the forearm appears: how it moved is unknown
+    assert memory.seen_speed == np.inf
+    back_in_time = state(1.03, np.ones(7, bool)).model_copy(update={"stamp": 2.5 / 30})
+    memory.update(back_in_time, 4 / 30, HOLD_S)
+    assert memory.seen_speed == np.inf
+    assert seen_speed(first.capsules, first.capsule_valid, first.capsules, np.zeros(7, bool), 0.1) == 0.0
+    assert external_capsules(second, 7, True).seen_speed == np.inf  # one message as it is: unknown
+
+
+def test_a_person_seen_jumping_is_not_still_whatever_their_velocities_say() -> None:
+    """The barrier's ``person_speed`` (what the back-out's stillness reads) is the larger of the
+    measured velocities and ``seen_speed``: a capsule re-initialised after a jump has velocity 0."""
+    barrier = build_pipeline(load_config(environ={})).barrier
+    message = state(1.0, np.ones(7, bool))
+    zero = np.zeros((7, 2, 3))
+    capsules = external_capsules(message, barrier.pairs.n_external, False)
+    barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero)
+    assert barrier.person_speed == 0.0
+    barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero, seen_speed=2.5)
+    assert barrier.person_speed == 2.5
+    barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero + [0.0, 3.0, 0.0], seen_speed=2.5)
+    assert barrier.person_speed == 3.0
+    barrier.set_external(*capsules._replace(velocities=zero))  # inf: one message as it is
+    assert barrier.person_speed == np.inf

@@ -65,11 +65,14 @@ RADII = np.array([0.13, 0.05, 0.045, 0.05, 0.045, 0.07, 0.07])
 
 
 def human_state(theta: np.ndarray, capsules: np.ndarray, velocities: np.ndarray | None = None,
-                keypoints: np.ndarray | None = None) -> HumanState:
+                keypoints: np.ndarray | None = None, capture_delay: float | None = None) -> HumanState:
     """A state of a person in pose ``theta`` (its skeleton: the synthetic body in that pose, which the
-    retargeting by directions reads) whose capsules the CBF sees at ``capsules``."""
+    retargeting by directions reads) whose capsules the CBF sees at ``capsules``; ``capture_delay``
+    (s): its frame was taken this long before it is published (None: no capture stamp)."""
+    stamp = time.monotonic()
     return HumanState(
-        stamp=time.monotonic(),
+        stamp=stamp,
+        capture_stamp=None if capture_delay is None else stamp - capture_delay,
         keypoints=skeleton(theta) if keypoints is None else keypoints,
         keypoint_valid=np.ones(15, bool),
         theta=theta,
@@ -309,6 +312,37 @@ def test_a_person_inside_the_forearm_is_reported_as_intrusion_and_relaxed_pairs_
     assert any("|human.left_forearm" in name for s in relaxed for name in s.relaxed_pairs)
     assert any(s.mode is SafetyMode.RELAXED for s in during)  # relaxed_pairs gather every step since the last status
     assert np.isfinite(live.rec.last("robot/command").q).all()
+
+
+@pytest.mark.integration
+def test_a_still_person_inside_the_arm_is_backed_out_of_and_a_late_camera_reported_over_zenoh(live: Live) -> None:
+    """A person's forearm appears across the robot's forward-pointing left arm and stays there, still:
+    the stop holds the robot, and after 0.5 s backs the arm out (SafetyStatus.backing_out). Their
+    frames then arrive 80 ms later than usual after capture: ``human_lateness_ms`` says so."""
+    _, far = person(2.0)
+    state = {"capsules": far, "delay": 0.02}
+    humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"],
+                                                          capture_delay=state["delay"]))
+    try:
+        live.rec.wait("robot/command", lambda c: c.q[2] < -1.3 and c.human_seq is not None, timeout_s=5)
+        time.sleep(0.3)
+        on_time = live.rec.wait("safety/status", lambda s: s.min_h_human is not None, timeout_s=2)
+        assert on_time.human_lateness_ms == 0.0 and not on_time.backing_out
+        start = time.monotonic()
+        inside = far.copy()
+        inside[LEFT_FOREARM] = [[0.3, -0.1, 1.1], [0.3, 0.4, 1.1]]  # across the arm, 0.3 m in front of the chest
+        state["capsules"] = inside
+        backing = live.rec.wait("safety/status", lambda s: s.backing_out, timeout_s=3, since=start)
+        during = live.rec.between("safety/status", start)
+        state["delay"] = 0.1
+        late = live.rec.wait("safety/status", lambda s: s.human_lateness_ms > 0.0, timeout_s=2)
+    finally:
+        humans.stop()
+    live.rec.wait("safety/status", lambda s: s.human_stale, timeout_s=3)  # leave the service as the next test expects
+    first_intrusion = next(s.stamp for s in during if s.person_intrusion)
+    assert backing.stamp - first_intrusion >= 0.45  # still for 0.5 s first (the status stamps: the service's clock)
+    assert backing.person_intrusion  # backing out is what the stop does about an intrusion
+    assert late.human_lateness_ms == pytest.approx(80.0, abs=2.0)
 
 
 @pytest.mark.integration

@@ -380,6 +380,10 @@ class StatusResponse(_View):
     relaxed_pairs: list[str] = Field(default_factory=list, description="rows that gave way (mode relaxed): robot–person pairs, or an already violated hard row")
     person_intrusion: bool | None = Field(default=None, description="a person capsule was inside a robot capsule's margin since the previous status "
                                                "(the robot stops or retreats: safety.on_intrusion)")
+    backing_out: bool | None = Field(default=None, description="the stop backed a robot arm out of a person standing still "
+                                     "inside its margin since the previous status (safety.intrusion_backout_mps)")
+    human_lateness_ms: float | None = Field(default=None, description="the newest HumanState was published this much later "
+                                            "after its camera frame than usual (ms; 0: on time)")
 
     @classmethod
     def build(cls, status: Received[SafetyStatus] | None, human: Received[HumanState] | None,
@@ -404,7 +408,8 @@ class StatusResponse(_View):
                        "resyncing": s.resyncing},
             watchdog_trips=s.watchdog_trips,
             config_version=config_version, backend=s.backend, dropped=s.dropped,
-            relaxed_pairs=s.relaxed_pairs, person_intrusion=s.person_intrusion,
+            relaxed_pairs=s.relaxed_pairs, person_intrusion=s.person_intrusion, backing_out=s.backing_out,
+            human_lateness_ms=s.human_lateness_ms,
         )
 
 

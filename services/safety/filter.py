@@ -217,7 +217,9 @@ class StepResult:
     person row gave way), so the step aimed at rest (``u_ref`` 0) and no person row asked for more
     than holding its distance or backing out of a still person; ``settled``: q_cbf was first
     brought to the robot's joints this step, so |q_cbf − the previous q_cbf| ≤ 2 u_max Δt instead
-    of u_max Δt (both: :mod:`services.safety.protective_stop`)."""
+    of u_max Δt (both: :mod:`services.safety.protective_stop`); ``backing_out``: the stop backed out
+    of a person who stands still inside the arms' margins (some arm's person rows kept b_i ←
+    min(b_i, ``intrusion_backout_mps``) instead of 0)."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -234,6 +236,7 @@ class StepResult:
     min_h_self: float | None = None
     ddq: np.ndarray | None = None
     settled: bool = False
+    backing_out: bool = False
 
 
 class SafetyFilter:
@@ -392,7 +395,7 @@ class SafetyFilter:
         A_all, b_all, inside, low_self, rows = self._write_rows(q)
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
         stop, fixed_stop = self.stops.decide(b_all, rows, p.on_intrusion, dt) if self.enforce else (False, False)
-        settled = None
+        settled, backing_out = None, False
         if self.stops.settles(stop, self._u_prev) and q_robot is not None:  # q_cbf brought to the robot
             settled = self._settle_pose(q, q_robot, dt)
             if settled is not None:
@@ -400,7 +403,7 @@ class SafetyFilter:
                 A_all, b_all, inside, low_self, rows = self._write_rows(q)
         if stop:  # the protective stop (services.safety.protective_stop): rest is the target, person rows their floor
             q_nom, dq_nom = q, self._rest
-            self.stops.floor_person_rows(b_all, soft_all, rows, not fixed_stop, p.intrusion_backout_mps)
+            backing_out = self.stops.floor_person_rows(b_all, soft_all, rows, not fixed_stop, p.intrusion_backout_mps)
         q_nom = np.ascontiguousarray(q_nom, dtype=np.float64)  # the bound kernel's types (BoundKernel)
         dq_nom = q_nom if dq_nom is None else np.ascontiguousarray(dq_nom, dtype=np.float64)
         if q_nom.shape != q.shape or dq_nom.shape != q.shape:
@@ -457,7 +460,8 @@ class SafetyFilter:
             person = rows.person_inside(0.0)
             intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
         return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
-                          stop, gave_way, None if low_self == math.inf else low_self, ddq, settled is not None)
+                          stop, gave_way, None if low_self == math.inf else low_self, ddq, settled is not None,
+                          backing_out)
 
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
                       n_pair: int) -> tuple:

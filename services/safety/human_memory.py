@@ -18,6 +18,11 @@ received at time ``now``:
   imitation may resume with the remaining valid capsules; a slot never seen valid (legs outside
   the camera's view) is never lost and never blocks imitation.
 
+How fast the capsules were *seen* to move between the last two messages (:func:`seen_speed`) is
+kept beside their measured velocities: perception reports a velocity of 0 where it cannot compute
+one (a capsule that just appeared, keypoints re-initialised after a jump), and a person who stands
+still is one whose capsules neither move by their velocities nor jump between frames.
+
 Time is the caller's clock (the safety service: local receive time; the evaluator: source time).
 Ages are taken at each fresh message only: between messages nothing changes, and a stale human
 (no message for ``safety.human_timeout_s``) keeps every capsule the barrier holds. Updating again
@@ -49,20 +54,36 @@ class ExternalCapsules(NamedTuple):
     velocities: np.ndarray | None
     sweep: np.ndarray | None = None
     held: np.ndarray | None = None
+    seen_speed: float = 0.0
+
+
+def seen_speed(before: np.ndarray, valid_before: np.ndarray, after: np.ndarray, valid_after: np.ndarray,
+               dt: float) -> float:
+    """How fast a person's capsules were seen to move between two states ``dt`` s apart (m/s): the
+    largest endpoint displacement |e_after − e_before| / dt of the capsules valid in both
+    (``before``, ``after`` (E,2,3) m; ``valid_before``, ``valid_after`` (E,) bool); inf when a capsule
+    valid after was not before (it appeared: how it moved is unknown) or ``dt`` is not a positive
+    time; 0 when none is valid after."""
+    if not valid_after.any():
+        return 0.0
+    if (valid_after & ~valid_before).any() or not (math.isfinite(dt) and dt > 0.0):
+        return math.inf
+    both = valid_after & valid_before
+    return float(np.linalg.norm(after[both] - before[both], axis=2).max(initial=0.0)) / dt
 
 
 def padded(
     n_external: int, endpoints: np.ndarray, radii: np.ndarray, valid: np.ndarray, velocities: np.ndarray | None,
-    sweep: np.ndarray | None = None, held: np.ndarray | None = None,
+    sweep: np.ndarray | None = None, held: np.ndarray | None = None, moved: float = 0.0,
 ) -> ExternalCapsules:
     """One person's capsules in the pair set's ``n_external`` slots (7 per person; the ``paper72``
     preset has a second person): this person fills the first 7, the other slots stay invalid
-    (disabled rows)."""
+    (disabled rows); ``moved`` (m/s): their :attr:`ExternalCapsules.seen_speed`."""
     n = min(n_external, endpoints.shape[0])
     out = ExternalCapsules(np.zeros((n_external, 2, 3)), np.zeros(n_external), np.zeros(n_external, bool),
                            None if velocities is None else np.zeros((n_external, 2, 3)),
                            None if sweep is None else np.zeros(n_external),
-                           None if held is None else np.zeros(n_external, bool))
+                           None if held is None else np.zeros(n_external, bool), moved)
     out.endpoints[:n], out.radii[:n], out.valid[:n] = endpoints[:n], radii[:n], valid[:n]
     if out.velocities is not None:
         out.velocities[:n] = velocities[:n]
@@ -74,9 +95,11 @@ def padded(
 
 
 def external_capsules(message: HumanState, n_external: int, use_velocity: bool) -> ExternalCapsules:
-    """One message's capsules as they are (no memory) in ``n_external`` slots (see :func:`padded`)."""
+    """One message's capsules as they are (no memory) in ``n_external`` slots (see :func:`padded`);
+    how they moved since a state before is unknown (``seen_speed`` inf, as for a first message)."""
     velocities = message.capsule_velocities if use_velocity else None
-    return padded(n_external, message.capsules, message.capsule_radii, message.capsule_valid, velocities)
+    return padded(n_external, message.capsules, message.capsule_radii, message.capsule_valid, velocities,
+                  moved=math.inf)
 
 
 def swept_capsules(endpoints: np.ndarray, radii: np.ndarray, velocities: np.ndarray,
@@ -155,6 +178,10 @@ class HumanMemory:
         self._lateness = FrameLateness()
         #: The newest message's lateness (s, :class:`FrameLateness`): the sweep ahead grows by it.
         self.lateness = 0.0
+        self._previous: HumanState | None = None  # the message before the newest one
+        #: How fast the capsules were seen to move from the message before to the newest
+        #: (:func:`seen_speed`, m/s; inf before a second message).
+        self.seen_speed = math.inf
 
     @property
     def lost(self) -> bool:
@@ -171,6 +198,12 @@ class HumanMemory:
         stays lost while it was valid at most ``hold_s`` (s) before ``now``."""
         self.lateness = self._lateness.update(message)
         seen = message.capsule_valid
+        previous = self._previous
+        if previous is None or message.stamp != previous.stamp:  # the same message again changes nothing
+            self.seen_speed = (math.inf if previous is None else
+                               seen_speed(previous.capsules, previous.capsule_valid, message.capsules, seen,
+                                          message.stamp - previous.stamp))
+            self._previous = message
         self._endpoints[seen], self._radii[seen], self._last_valid[seen] = message.capsules[seen], message.capsule_radii[seen], now
         self._lost = ~seen & (now - self._last_valid <= hold_s)
         self._valid = seen | self._lost
@@ -186,11 +219,13 @@ class HumanMemory:
         plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged). Lost
         slots are ``held`` (None while none is). ``stale``: the newest message is older than
         ``safety.human_timeout_s`` (or its source is gone): the capsules as last measured, neither
-        velocity nor sweep (a velocity that old says nothing of where the person is now)."""
+        velocity nor sweep (a velocity that old says nothing of where the person is now). The
+        capsules carry :attr:`seen_speed`."""
         velocities = self._velocities if use_velocity and not stale else None
         held = self._lost if self.lost else None
         if predict_s > 0.0 and not stale and self._velocities is not None:
             endpoints, radii, sweep = swept_capsules(self._endpoints, self._radii, self._velocities,
                                                      predict_s + self.lateness)
-            return padded(n_external, endpoints, radii, self._valid, velocities, sweep, held)
-        return padded(n_external, self._endpoints, self._radii, self._valid, velocities, held=held)
+            return padded(n_external, endpoints, radii, self._valid, velocities, sweep, held, self.seen_speed)
+        return padded(n_external, self._endpoints, self._radii, self._valid, velocities, held=held,
+                      moved=self.seen_speed)

@@ -53,7 +53,9 @@ stand. So the stop backs out of them when
 - the person stands still: every present person capsule's endpoints slower than
   :data:`STILL_SPEED` (0.15 m/s: a standing person sways by a few cm/s, a walking one carries the
   torso at ≥ 0.5 m/s) for the last :data:`STILL_FOR_S` (0.5 s: longer than a keypoint glitch or the
-  turning point of a swing); unknown velocities (a stale person, a capsule held from memory) count
+  turning point of a swing), by their measured velocities and as seen moving between two states
+  (perception reports 0 where it cannot compute a velocity: a capsule re-initialised after a
+  jump); unknown motion (a stale person, a capsule held from memory, one that just appeared) counts
   as moving, and
 - they are inside the margins of the robot's arms only (not the torso's, not the fixed body's).
 
@@ -71,7 +73,7 @@ torso, whose mesh meets them where its capsule's closest point is not closing (t
 stepping in: 284). The back-out rows are lowered, never raised (min(b_i, c) ≤ b_i), and their
 relaxation floor stays min(b_i, 0) = 0, so the feasibility argument holds as it is. Measured (README "Backing
 out from a person who stands inside"): a broad person (shoulders 0.37 m) dancing beside the robot,
-4,113 contact steps → 0.
+4,113 contact steps → 138, none robot-caused.
 
 **The stop holds the robot where it is.** A servo tracks q_cbf with a lag: braking within the
 acceleration bound leaves the joints 1–20 mrad behind the command, and once the command is at rest
@@ -174,21 +176,24 @@ class ProtectiveStop:
         return fixed or (on_intrusion in STOPS and intruded(rows)), fixed
 
     def floor_person_rows(self, b: np.ndarray, soft: np.ndarray, rows: BarrierRows, backs_out: bool,
-                          backout: float) -> None:
+                          backout: float) -> bool:
         """A stop's rows, in place in ``b`` (M,), the stacked rows' bounds: every robot–person row
         (``soft`` (M,)) at its floor, b_i ← min(b_i, 0); if ``backs_out`` (not the stop at the
         fixed body), once the person has stood still (:attr:`CollisionGeometry.person_speed` ≤
         :data:`STILL_SPEED` for :data:`STILL_FOR_S`) and every pair row whose person capsule is
         inside for certain (:meth:`BarrierRows.person_inside`) is an arm capsule's, those rows keep
-        b_i ← min(b_i, ``backout``) (m/s) instead ("Backing out from a person who stands inside")."""
+        b_i ← min(b_i, ``backout``) (m/s) instead ("Backing out from a person who stands inside").
+        Returns whether they did (the step backs out)."""
         pair_b, kept = b[: self._arm_person_rows.shape[0]], None  # the pair rows come first
         if backs_out and backout > 0.0 and self._still_for >= STILL_FOR_S:
             inside = rows.person_inside(-VIOLATION_TOL)
             if not (inside & ~self._arm_person_rows).any():  # inside the torso's margin too: no back-out
                 kept = np.minimum(pair_b[inside], backout)
         np.minimum(b, 0.0, out=b, where=soft)
-        if kept is not None:
-            pair_b[inside] = kept
+        if kept is None:
+            return False
+        pair_b[inside] = kept
+        return True
 
     def settles(self, stop: bool, u_prev: np.ndarray | None) -> bool:
         """Whether this step brings q_cbf to the robot ("The stop holds the robot where it is"):

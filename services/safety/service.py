@@ -171,6 +171,7 @@ class SafetyService(ScheduledService):
         self._next_status = -math.inf
         self._relaxed_since_status: set[str] = set()  # pairs that gave way since the last status
         self._intrusion_since_status = False
+        self._backing_out_since_status = False  # the intrusion stop backed out of a still person since the last status
 
         # inputs, fed by the bus (Zenoh threads); everything above exists before the first callback
         self.refusals = Refusals()  # and valid messages we refused (config, frame, output)
@@ -282,6 +283,7 @@ class SafetyService(ScheduledService):
         self.ticks += 1
         self._relaxed_since_status.update(result.gave_way)
         self._intrusion_since_status |= result.intrusion
+        self._backing_out_since_status |= result.backing_out
         if now >= self._next_status:
             self._publish_status(now, result, mode, q_nom)
             status_period = 1.0 / self.conf.safety.status_rate_hz
@@ -410,6 +412,8 @@ class SafetyService(ScheduledService):
                 binding_pairs=binding[:256],
                 q_nom=q_nom if np.isfinite(q_nom).all() else None,
                 person_intrusion=self._intrusion_since_status,
+                backing_out=self._backing_out_since_status,
+                human_lateness_ms=1e3 * self._memory.lateness,
                 executor_holding=self.watchdogs.tripped("executor_command"),
                 resyncing=self._resync_target is not None,
                 watchdog_trips=dict(self.watchdogs.trips),
@@ -419,7 +423,7 @@ class SafetyService(ScheduledService):
             )
         )
         self._relaxed_since_status.clear()
-        self._intrusion_since_status = False
+        self._intrusion_since_status = self._backing_out_since_status = False
 
     def dropped(self) -> dict[str, int]:
         """Invalid or refused messages per topic: undecodable, failing callbacks, rejected."""

@@ -63,6 +63,8 @@ def make(cls: type[Message], **changes: Any) -> Message:
             binding_pairs=["left_forearm|human.torso", "left_forearm|right_forearm"],
             q_nom=rng.uniform(-1, 1, 8),
             person_intrusion=True,
+            backing_out=True,
+            human_lateness_ms=12.5,
             watchdog_trips={"human_state": 2, "resync": 1},
             dropped={"human/state": 3},
             config_version=4,
@@ -127,6 +129,7 @@ def random_message(cls: type[Message], rng: np.random.Generator, config: Callabl
             qp_solve_time_ms=float(rng.uniform(0, 1)), step_time_ms=float(rng.uniform(0, 2)),
             binding_pairs=["left_forearm|human.torso"] if rng.random() < 0.5 else [],
             q_nom=rng.uniform(-0.5, 0.5, 8) if rng.random() < 0.5 else None,
+            backing_out=bool(rng.random() < 0.2), human_lateness_ms=float(rng.exponential(5.0)),
             dropped={"human/state": int(rng.integers(0, 1000))}, config_version=int(rng.integers(0, 2**31)),
         )
     if cls is ConfigUpdate:

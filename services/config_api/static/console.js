@@ -244,6 +244,8 @@ function onStatus(status) {
   // what the robot does about it is the configured response (safety.on_intrusion)
   const response = loaded && loaded.safety.on_intrusion === "retreat" ? "the robot retreats" : "the robot stops";
   $("intrusion").textContent = status.available ? (status.person_intrusion ? "yes: " + response : "no") : "–";
+  $("backing-out").textContent = status.available ? (status.backing_out ? "yes" : "no") : "–";
+  $("lateness").textContent = fmt(status.human_lateness_ms, 0);
   $("applied-version").textContent = status.applied_config_version === null ? "–" : "v" + status.applied_config_version;
   if (!status.available) return;
   samples.push({ t: performance.now() / 1000, hSelf: status.h_min_self, hHuman: status.h_min_human, solve: status.solve_time_ms, mode: status.mode });

@@ -187,8 +187,9 @@ class CollisionGeometry(Barrier):
         #: added to every external capsule's radius at :meth:`set_external` (m; ``safety.human_margin``,
         #: the person sensor's position uncertainty): h of a robot–person row counts it
         self.person_margin = 0.0
-        #: the fastest endpoint of a present external capsule at :meth:`set_external` (m/s): 0 with none
-        #: present, inf when their velocities are unknown (none given, or a present capsule held)
+        #: the fastest endpoint of a present external capsule at :meth:`set_external` (m/s), by its
+        #: velocity or as seen moving between states: 0 with none present, inf when unknown (no
+        #: velocities given, a present capsule held, one that just appeared)
         self.person_speed = 0.0
         self._all_enabled = True
         #: (m,) the monitored pair (index into ``pairs``) of each row; the identity for capsules.
@@ -233,13 +234,15 @@ class CollisionGeometry(Barrier):
         velocities: np.ndarray | None = None,
         sweep: np.ndarray | None = None,
         held: np.ndarray | None = None,
+        seen_speed: float = 0.0,
     ) -> None:
         """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s; each radius plus
         :attr:`person_margin`); None: none present. ``sweep`` (E,) m: how much each was widened to
         enclose where its velocity carries it (:func:`~services.safety.human_memory.swept_capsules`;
         None: 0), reported per row as :attr:`BarrierRows.sweep`; ``held`` (E,) bool: the capsules
-        remembered rather than measured, whose velocity is unknown (None: none). :attr:`person_speed`
-        follows."""
+        remembered rather than measured, whose velocity is unknown (None: none); ``seen_speed`` (m/s):
+        how fast they were seen to move between the last two states
+        (:func:`~services.safety.human_memory.seen_speed`). :attr:`person_speed` follows."""
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
@@ -253,8 +256,8 @@ class CollisionGeometry(Barrier):
             self._row_sweep = self._sweep[self._row_capsule]
             present = self._valid[ext]
             unknown = velocities is None or (held is not None and bool((present & held).any()))
-            self.person_speed = (math.inf if unknown else
-                                 float(np.linalg.norm(self._velocities[ext][present], axis=2).max(initial=0.0)))
+            self.person_speed = (math.inf if unknown else max(
+                float(np.linalg.norm(self._velocities[ext][present], axis=2).max(initial=0.0)), seen_speed))
             self._external_changed()
         self._all_enabled = bool(self._valid.all())
         self._row_enabled = self._row_all_enabled if self._all_enabled else self._valid[self._row_capsule]
