@@ -38,7 +38,8 @@ def test_scene_draws_new_messages_counts_garbage_and_reports_a_silent_publisher(
             joints.put(JointState(stamp=time.monotonic(), q=np.full(8, 0.1 * k), dq=np.zeros(8)))
             status.put(SafetyStatus(stamp=time.monotonic(), mode=SafetyMode.ACTIVE, min_h_self=0.01, min_h_human=None,
                                     active_constraints=1, total_constraints=63, qp_solve_time_ms=0.01, step_time_ms=0.1,
-                                    q_nom=np.full(8, 0.2), binding_pairs=["left_forearm|right_forearm"]))
+                                    q_nom=np.full(8, 0.2), binding_pairs=["left_forearm|right_forearm"],
+                                    person_intrusion=k > 0, backing_out=k == 2, human_lateness_ms=10.0 * k))
             pbus.put_raw("robot/joint_state", b"\x93garbage")
             time.sleep(0.1)
             scene.frame()
@@ -55,6 +56,8 @@ def test_scene_draws_new_messages_counts_garbage_and_reports_a_silent_publisher(
     # for the pelvis (no imitation joint moves it)
     assert rows["/robot/cbf/mesh/left_elbow_link"] == 1 + 3 and rows["/robot/cbf/mesh/pelvis"] == 1 + 1
     assert rows["/barriers/cbf/min_h/self"] == 3 and rows["/viewer/log"] >= 1
+    assert rows["/robot/cbf/status/backing_out"] == rows["/robot/cbf/status/human_lateness_ms"] == 3
+    assert rows["/robot/cbf/status/person_intrusion"] == 3
 
 
 def test_the_viewer_session_lets_in_at_most_one_control_rate_sample_per_frame() -> None:

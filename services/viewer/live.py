@@ -13,7 +13,9 @@ since the last frame:
 - ``JointCommand`` → ``joints/{joint}/q_cbf`` (rad, the safe target);
 - ``SafetyStatus`` → ``joints/{joint}/q_nom`` (rad, the target the filter tracked),
   ``barriers/cbf/min_h/{self,human}`` (m, the safety service's own min h per pair group),
-  ``robot/cbf/status/{mode,qp_ms,step_ms,deadline_misses}`` and its binding pairs;
+  ``robot/cbf/status/{mode,qp_ms,step_ms,deadline_misses}``, what the stop does
+  (``robot/cbf/status/{person_intrusion,backing_out}``, 1 or 0), how late the camera is
+  (``robot/cbf/status/human_lateness_ms``) and its binding pairs;
 - ``HumanState`` → ``person/perceived`` (keypoints, bones, capsules where valid).
 
 The time series are sent in batches every :data:`SERIES_BATCH_S` (:class:`draw.SeriesBatch`; each
@@ -182,6 +184,9 @@ class LiveScene:
         self.series.add(E.robot("cbf", "status", "qp_ms"), self._t, m.qp_solve_time_ms)
         self.series.add(E.robot("cbf", "status", "step_ms"), self._t, m.step_time_ms)
         self.series.add(E.robot("cbf", "status", "deadline_misses"), self._t, m.deadline_misses)
+        self.series.add(E.robot("cbf", "status", "person_intrusion"), self._t, float(m.person_intrusion))
+        self.series.add(E.robot("cbf", "status", "backing_out"), self._t, float(m.backing_out))
+        self.series.add(E.robot("cbf", "status", "human_lateness_ms"), self._t, m.human_lateness_ms)
         self.logged["status"] += 1
         changed = m.binding_pairs != self._binding
         self._binding = list(m.binding_pairs)
