@@ -211,3 +211,13 @@ def test_a_person_seen_jumping_is_not_still_whatever_their_velocities_say() -> N
     assert barrier.person_speed == 3.0
     barrier.set_external(*capsules._replace(velocities=zero))  # inf: one message as it is
     assert barrier.person_speed == np.inf
+
+
+def test_the_seen_speed_is_over_the_frames_interval_when_the_states_carry_capture_stamps() -> None:
+    """Two frames 1/30 s apart published 2 ms apart (the first one late after an inference stall):
+    the capsules moved 3 cm between the frames, 0.9 m/s, not 15 m/s."""
+    memory = HumanMemory()
+    memory.update(state(1.0, np.ones(7, bool)).model_copy(update={"stamp": 0.100, "capture_stamp": 0.0}), 0.1, HOLD_S)
+    late = state(1.03, np.ones(7, bool)).model_copy(update={"stamp": 0.102, "capture_stamp": 1 / 30})
+    memory.update(late, 0.102, HOLD_S)
+    assert memory.seen_speed == pytest.approx(0.9)

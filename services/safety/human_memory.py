@@ -37,6 +37,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from services.safety.nominal import frame_stamp
 from shared.messages import HumanState
 from shared.names import CAPSULE_NAMES
 
@@ -180,7 +181,9 @@ class HumanMemory:
         self.lateness = 0.0
         self._previous: HumanState | None = None  # the message before the newest one
         #: How fast the capsules were seen to move from the message before to the newest
-        #: (:func:`seen_speed`, m/s; inf before a second message).
+        #: (:func:`seen_speed` over their frames' interval, :func:`~services.safety.nominal.frame_stamp`:
+        #: frames published together after a stall are still a frame period apart; m/s; inf before a
+        #: second message).
         self.seen_speed = math.inf
 
     @property
@@ -200,9 +203,9 @@ class HumanMemory:
         seen = message.capsule_valid
         previous = self._previous
         if previous is None or message.stamp != previous.stamp:  # the same message again changes nothing
-            self.seen_speed = (math.inf if previous is None else
+            self.seen_speed = (math.inf if previous is None else  # over the frames' interval, not the publications'
                                seen_speed(previous.capsules, previous.capsule_valid, message.capsules, seen,
-                                          message.stamp - previous.stamp))
+                                          frame_stamp(message) - frame_stamp(previous)))
             self._previous = message
         self._endpoints[seen], self._radii[seen], self._last_valid[seen] = message.capsules[seen], message.capsule_radii[seen], now
         self._lost = ~seen & (now - self._last_valid <= hold_s)
