@@ -54,6 +54,7 @@ def test_paper_scenarios_violate_without_and_are_safe_with_the_cbf(scenario: str
     assert cbf["rms_tracking"] > nominal["rms_tracking"]  # the layer did bend the motion
     assert cbf["nan_count"] == 0 and nominal["nan_count"] == 0
     assert cbf["hold_steps"] == 0
+    assert nominal["protective_stop_steps"] == nominal["backing_out_steps"] == 0  # no filter, no stop
     assert metrics["input"]["free_steps"] < metrics["input"]["control_steps"]
     assert metrics["input"]["robot_model"] == ("g1.xml" if model == "real_g1" else "default")
 
@@ -206,6 +207,8 @@ def test_a_broad_person_standing_in_an_arms_margin_is_backed_out_of(tmp_path: Pa
     assert runs[0.0]["true_contacts_robot_human"] > 1000 and runs[0.0]["min_h_human"] < -0.05  # frozen inside
     assert runs[0.05]["true_contacts_robot_human"] <= 0.1 * runs[0.0]["true_contacts_robot_human"]  # the goal's 10 %
     assert runs[0.05]["min_h_human"] > runs[0.0]["min_h_human"]
+    assert runs[0.0]["backing_out_steps"] == 0 < runs[0.05]["backing_out_steps"] <= runs[0.05]["protective_stop_steps"]
+    assert runs[0.05]["protective_stop_steps"] < runs[0.0]["protective_stop_steps"]  # it stood less
     for run in runs.values():
         assert run["robot_caused_contact_steps"] == 0 and run["nan_count"] == 0 and run["min_h_self"] >= -1e-3
 

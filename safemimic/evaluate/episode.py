@@ -62,7 +62,8 @@ class Episode:
     (N,) index into :data:`MODES`; ``qp_ms`` (N,) solve time (wall clock); ``human`` (N,) index
     of the perceived state in force (−1: none yet); ``settled`` (N,) the step first brought q_cbf
     to the robot's joints (a stop: the step then ran from q_cbf[k] − Δt u*[k], not from
-    q_cbf[k−1]); ``pairs`` names the columns of ``h``.
+    q_cbf[k−1]); ``stopped`` (N,) the step was a protective stop (:attr:`StepResult.protective_stop`),
+    ``backing_out`` (N,) one that backed an arm out of a still person; ``pairs`` names the columns of ``h``.
 
     The world: ``q_sim``/``dq_sim`` (N, 8) simulated joints after the step; ``qpos`` (N, nq) the
     whole MuJoCo pose; ``robot_capsules`` (N, 7, 2, 3) the CBF capsules at q_sim;
@@ -96,6 +97,8 @@ class Episode:
     qp_ms: np.ndarray
     human: np.ndarray
     settled: np.ndarray
+    stopped: np.ndarray
+    backing_out: np.ndarray
     true_clearance: np.ndarray
     true_rate: np.ndarray
     true_rate_commanded: np.ndarray
@@ -136,7 +139,8 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
         q_nom=np.empty((n, j)), q_cbf=np.empty((n, j)), u=np.empty((n, j)), q_sim=np.empty((n, j)),
         dq_sim=np.empty((n, j)), qpos=np.empty((n, nq)), robot_capsules=np.empty((n, 7, 2, 3)),
         h=np.empty((n, m)), active=np.zeros((n, m), bool), binding=np.zeros(n, bool), mode=np.empty(n, np.int8),
-        qp_ms=np.empty(n), human=np.full(n, -1, np.int64), settled=np.zeros(n, bool),
+        qp_ms=np.empty(n), human=np.full(n, -1, np.int64), settled=np.zeros(n, bool), stopped=np.zeros(n, bool),
+        backing_out=np.zeros(n, bool),
         true_clearance=np.empty((n, mt)), true_rate=np.empty((n, mt)), true_rate_commanded=np.empty((n, mt)),
         true_contact=np.zeros(n, bool), true_depth=np.zeros(n), robot_caused=np.zeros(n, bool),
         robot_caused_commanded=np.zeros(n, bool), closing_speed=np.zeros(n), fixed_contact=np.zeros(n, bool),
@@ -258,7 +262,7 @@ def run_episode(
         ep.mode[k] = MODES.index(result.mode)
         ep.qp_ms[k] = result.qp_time_s * 1e3
         ep.human[k] = newest
-        ep.settled[k] = result.settled
+        ep.settled[k], ep.stopped[k], ep.backing_out[k] = result.settled, result.protective_stop, result.backing_out
         ep.contact_steps[k] = len(report.robot_robot), len(report.robot_human), len(true_report.robot_human)
         if progress is not None:
             progress(k + 1)
