@@ -18,7 +18,7 @@ from safemimic.evaluate.metrics import RUN_KEYS, TIMING_KEYS, deterministic_part
 from safemimic.evaluate.variants import broadened, read_recording
 from services.perception.placement import Placement
 from services.perception.scenarios import get_scenario, scenario_recording
-from shared.config import RetargetMethod, TargetPath
+from shared.config import RetargetMethod, TargetPath, load_config
 from shared.names import KEYPOINT_NAMES
 from tests.support.team import G1_MJCF, MOCAP_DIR, REPO
 
@@ -254,6 +254,10 @@ def test_suite_over_the_development_clips_writes_one_row_per_clip_and_placement(
     cell = [("—" if fidelity[key] is None else f"{fidelity[key]:.0f}")
             for key in ("lag_ms", "lag_ms_target", "lag_ms_command", "lag_ms_servo")]
     assert f"| {cell[0]} ({cell[1]} / {cell[2]} / {cell[3]}) |" in table  # the lag, and where it comes from
+    walk = rows[("bandai1_slash_sword", "facing")]["cbf"]  # a person walking through the robot: it stops
+    step_s = 1.0 / load_config(environ={}).safety.rate_hz
+    assert walk["protective_stop_steps"] > 0
+    assert f"| {walk['protective_stop_steps'] * step_s:.2f} / {walk['backing_out_steps'] * step_s:.2f} |" in table
     assert summary["goals"] == goal_report(summary["runs"])  # the evaluated runs, the broken one left out
     assert all(g["met"] + g["failed"] + g["not_judged"] == 2 * len(clips) for g in summary["goals"])
     assert "\n".join(goals_markdown(summary["goals"])) in table

@@ -45,6 +45,9 @@ COLUMNS: tuple[tuple[str, str], ...] = (
      "trailing or settling behind their command)"),
     ("approaches / commanded (CBF)", "CBF run: steps at which the robot closed > 1 mm/s a pair whose true clearance "
      "is below φ / of those, the ones the command u* closed too; in brackets, how far it closed in over them (mm)"),
+    ("stopped (s): stop / backing out", "CBF run: how long the robot aimed at rest instead of imitating because a "
+     "person was inside a margin (the protective stop, safety.on_intrusion) / of that, backing an arm out of a person "
+     "standing still inside it"),
     ("min true clearance (mm)", "CBF run: smallest robot–person capsule surface distance at the simulated joints"),
     ("min self h (mm)", "CBF run: smallest self-pair barrier at the simulated joints (true_min_h_self)"),
     ("lag (ms) (target / command / servos)", "CBF run: median delay of the simulated joints behind the true person's "
@@ -94,6 +97,12 @@ def _mm(value: float | None) -> str:
     return "—" if value is None else f"{1e3 * value:.1f}"
 
 
+def _stopped(cbf: dict[str, Any], given: dict[str, Any]) -> str:
+    """The stopped column: protective stop / backing-out steps of a run, in seconds."""
+    step_s = given["seconds"] / max(given["control_steps"], 1)
+    return f"{cbf['protective_stop_steps'] * step_s:.2f} / {cbf['backing_out_steps'] * step_s:.2f}"
+
+
 def _num(value: float | None, fmt: str) -> str:
     return "—" if value is None else format(value, fmt)
 
@@ -119,6 +128,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             f"({cbf['true_contacts_fixed_bodies']})",
             f"{cbf['robot_caused_contact_steps']} / {cbf['robot_caused_contact_steps_commanded']}",
             f"{cbf['robot_approach_steps']} / {cbf['robot_approach_steps_commanded']} ({cbf['robot_approach_mm']:.1f})",
+            _stopped(cbf, run["input"]),
             _mm(cbf["true_min_clearance_human"]),
             _mm(cbf["true_min_h_self"]),
             f"{_num(cbf['fidelity']['lag_ms'], '.0f')} "
