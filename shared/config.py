@@ -291,8 +291,8 @@ class SafetyConfig(_Section):
     )
     intrusion_backout_mps: float = Field(
         default=0.05, ge=0, le=0.25,
-        description="during the intrusion stop, once the person stands still (every capsule slower than 0.15 m/s for "
-        "0.5 s, by its velocity and as seen between states; none held from memory or just appeared) inside the "
+        description="during the intrusion stop, while the person stands still (seen to move slower than 0.15 m/s "
+        "over up to the last second, at least 0.5 s, which a camera's noise averages out; none held from memory or just appeared) inside the "
         "margins of the robot's arms only, each arm backs out of the person capsules it holds at up to this speed (m/s, along the pair's normal) until none is inside: a person who "
         "stands in an arm's margin does not freeze the robot there. 0: it stands still until they leave. README "
         "'Backing out from a person who stands inside'",

@@ -35,8 +35,11 @@ from services.perception.camera.model import (
     install_models,
     locate_models,
 )
+from services.perception.pipeline import PerceptionPipeline
 from services.perception.sources import SourceUnavailable, open_source
-from shared.config import CameraExtrinsics, CameraIntrinsics, PerceptionConfig
+from services.safety.human_memory import HumanMemory
+from services.safety.protective_stop import STILL_SPEED
+from shared.config import CameraExtrinsics, CameraIntrinsics, HumanConfig, PerceptionConfig
 from shared.names import KEYPOINT_INDEX as K
 from tests.support.processes import free_port
 from tests.support.team import REPO
@@ -236,6 +239,31 @@ def test_source_streams_a_video_file_as_skeleton_frames(models: ModelPaths, vide
     spread = np.ptp(heads, axis=0)
     assert spread[0] < 0.3 and spread[1:].max() < 0.1, spread
     assert source.counters() == {"frames": 9, "no_person": 2, "failed": 0, "ended": "end of the video file"}
+
+
+def test_a_still_photograph_is_judged_still_through_its_depth_jitter(tmp_path: Path, models: ModelPaths) -> None:
+    """The cameraman photographed, 10 s of the same frame at 30 fps, through the camera source, the
+    point filter and the capsules into the safety layer's memory: the monocular depth jitters every
+    capsule by centimetres from frame to frame, so his measured capsule velocities never fall to the
+    back-out's still speed, but their spread over the last second does on most frames after the
+    first 3 s where no capsule is held (his half-hidden legs flicker in and out)."""
+    video = write_video(tmp_path / "camera.avi", [photograph("camera")] * 300, 30.0)
+    source = open_source(PerceptionConfig(source="camera", realtime=False,
+                                          camera={"device": str(video), "model_dir": str(models.detector.parent)}))
+    pipeline, memory = PerceptionPipeline(PerceptionConfig(), HumanConfig()), HumanMemory()
+    measured, seen, held = [], [], []
+    for frame in source.frames(threading.Event()):
+        result = pipeline.step(frame)
+        memory.update(result.to_message(frame.t, frame.t), frame.t, 2.0)
+        measured.append(np.linalg.norm(result.capsule_velocities[result.capsule_valid], axis=2).max(initial=0.0))
+        seen.append(memory.seen_speed)
+        held.append(memory.lost)
+    assert len(seen) == 300
+    after = slice(90, None)
+    measured_still = np.array(measured[after]) <= STILL_SPEED
+    seen_still = (np.array(seen[after]) <= STILL_SPEED)[~np.array(held[after])]
+    assert measured_still.mean() < 0.05 and len(seen_still) > 100
+    assert seen_still.mean() > 0.4, seen_still.mean()
 
 
 def test_source_stops_when_asked(models: ModelPaths, video: Path) -> None:

@@ -186,10 +186,10 @@ def test_a_broad_person_standing_in_an_arms_margin_is_backed_out_of(tmp_path: Pa
     """The development dance by a person whose shoulders are 0.37 m apart (the broadened variant),
     beside the robot: for its first seconds they stand with the right forearm inside the margin of
     the robot's left forearm at home. With backing out (the default) the robot leaves that margin
-    once they have been seen still for 0.5 s (from their second frame: one frame shows no motion),
-    touching them only while it does (their forearm sways onto its hand at 0.54 s, the back-out
-    begins at 0.59 s); with it off the intrusion stop holds the robot where it is, in contact most of
-    the time. Neither is robot-caused."""
+    once they have been seen still for 0.5 s (their capsules spread no further than a slow sway
+    would), touching them only while it does (their forearm sways onto its hand at 0.54 s); with it
+    off the intrusion stop holds the robot where it is, in contact most of the time. Neither is
+    robot-caused."""
     clip = MOCAP_DIR / "bandai1_stand_then_dance.npz"
     if not clip.is_file():
         pytest.skip(f"motion capture clip not found at {clip}")

@@ -7,6 +7,7 @@ import pytest
 
 from services.safety.assembly import build_pipeline
 from services.safety.human_memory import FrameLateness, HumanMemory, external_capsules, seen_speed
+from services.safety.protective_stop import STILL_SPEED
 from shared.config import load_config
 from shared.messages import HumanState
 from shared.geometry import segment_closest_points
@@ -170,54 +171,102 @@ def test_a_state_published_late_after_its_capture_is_swept_further_by_its_latene
     assert first == 0.0  # the first state is its own usual delay
 
 
-def test_how_fast_the_capsules_were_seen_to_move_between_states() -> None:
-    """``seen_speed``: the fastest endpoint displacement over the stamps' interval between the last
-    two messages; unknown (inf) for a first message and for a capsule that appears (perception
-    reports it with velocity 0), kept when the same message is taken again, 0 with nobody there."""
+def frames(path, n: int = 31, fps: float = 30.0, valid: np.ndarray | None = None, t0: float = 0.0) -> list[HumanState]:
+    """``n`` states ``fps`` apart from ``t0`` (stamp = capture stamp) whose capsules are offset by
+    ``path(t)`` (m; a float: along x, or a (7, 2, 3) array)."""
+    valid = np.ones(7, bool) if valid is None else valid
+    out = []
+    for k in range(n):
+        t = t0 + k / fps
+        message = state(1.0, valid)
+        out.append(message.model_copy(update={"stamp": t, "capture_stamp": t, "capsules": message.capsules + along_x(path(t))}))
+    return out
+
+
+def along_x(offset: float | np.ndarray) -> np.ndarray:
+    return offset if isinstance(offset, np.ndarray) else np.array([offset, 0.0, 0.0])
+
+
+def seen_after(states: list[HumanState], memory: HumanMemory | None = None) -> float:
+    memory = HumanMemory() if memory is None else memory
+    for message in states:
+        memory.update(message, message.stamp, HOLD_S)
+    return memory.seen_speed
+
+
+def test_how_fast_the_capsules_were_seen_to_move_over_the_last_second() -> None:
+    """``seen_speed`` over the last STILL_WINDOW_S of frames: the speed of a steady motion, unknown
+    (inf) until the frames span STILL_SEEN_FOR_S, for a capsule seen in under half of them and after
+    the stream starts over; a still person under a camera's noise is still although their endpoints jump
+    by centimetres from frame to frame; an arm punching out and back within the window is not."""
+    walking = frames(lambda t: 0.9 * t)
     memory = HumanMemory()
-    first = state(1.0, all_but(RIGHT_FOREARM))
-    memory.update(first, 0.0, HOLD_S)
-    assert memory.seen_speed == np.inf and memory.capsules(7, True).seen_speed == np.inf
-    second = state(1.03, all_but(RIGHT_FOREARM)).model_copy(update={"stamp": 1 / 30})
-    memory.update(second, 1 / 30, HOLD_S)
-    assert memory.seen_speed == pytest.approx(0.9) and memory.capsules(7, True, 0.093).seen_speed == pytest.approx(0.9)
-    memory.update(second, 0.5, HOLD_S)  # the same message again (the human went stale): unchanged
-    assert memory.seen_speed == pytest.approx(0.9)
-    still = state(1.03, all_but(RIGHT_FOREARM, *LEGS)).model_copy(update={"stamp": 2 / 30})
-    memory.update(still, 2 / 30, HOLD_S)  # legs gone (held, not measured): the others did not move
-    assert memory.seen_speed == 0.0
-    appeared = state(1.03, np.ones(7, bool)).model_copy(update={"stamp": 3 / 30})
-    memory.update(appeared, 3 / 30, HOLD_S)  # the forearm appears: how it moved is unknown
-    assert memory.seen_speed == np.inf
-    back_in_time = state(1.03, np.ones(7, bool)).model_copy(update={"stamp": 2.5 / 30})
-    memory.update(back_in_time, 4 / 30, HOLD_S)
-    assert memory.seen_speed == np.inf
-    assert seen_speed(first.capsules, first.capsule_valid, first.capsules, np.zeros(7, bool), 0.1) == 0.0
-    assert external_capsules(second, 7, True).seen_speed == np.inf  # one message as it is: unknown
+    assert seen_after(walking[:15], memory) == np.inf  # 0.47 s seen: not yet known
+    assert seen_after(walking[15:16], memory) == pytest.approx(0.9, rel=0.07)
+    assert seen_after(walking[16:], memory) == pytest.approx(0.9, rel=0.04)
+    assert len(memory._window) == 31  # noqa: SLF001 (a second of frames, and the one before it)
+    assert memory.capsules(7, True).seen_speed == memory.seen_speed
+    assert memory.capsules(7, True, stale=True).seen_speed == np.inf  # stale: how they move now is unknown
+    before = memory.seen_speed
+    memory.update(walking[-1], 2.0, HOLD_S)  # the same message again: unchanged
+    assert memory.seen_speed == before
+    assert seen_after(frames(lambda t: 0.9 * t, t0=1.0, n=31), memory) == pytest.approx(0.9, rel=0.04)
+    assert len(memory._window) == 31  # noqa: SLF001
+    assert seen_after(frames(lambda t: 0.9 * t, t0=0.5, n=2), memory) == np.inf  # back in time: started over
+
+    rng = np.random.default_rng(3)
+    noise = rng.normal(scale=0.01, size=(31, 7, 2, 3))  # 1.7 cm RMS per endpoint
+    noisy = frames(lambda t: noise[round(t * 30)])
+    jumps = max(np.linalg.norm(noise[k + 1] - noise[k], axis=2).max() * 30 for k in range(30))
+    assert jumps > 1.0  # a frame-to-frame speed above 1 m/s ...
+    assert seen_after(noisy) < STILL_SPEED  # ... on a person standing still
+    punching = frames(lambda t: 0.15 * np.sin(2 * np.pi * 2.0 * t))  # out and back twice a second
+    assert seen_after(punching) > 2 * STILL_SPEED
+
+    legs_gone = frames(lambda t: 0.0)
+    legs_gone[-1] = legs_gone[-1].model_copy(update={"capsule_valid": all_but(*LEGS)})
+    assert seen_after(legs_gone) == pytest.approx(0.0, abs=1e-12)  # held, not measured: the others stood still
+    appeared = frames(lambda t: 0.0, valid=all_but(RIGHT_FOREARM))
+    for k in range(16, 31):
+        appeared[k] = appeared[k].model_copy(update={"capsule_valid": np.ones(7, bool)})
+    assert seen_after(appeared) == np.inf  # the forearm seen in 15 of 31 frames: unknown
+    appeared[15] = appeared[15].model_copy(update={"capsule_valid": np.ones(7, bool)})
+    assert seen_after(appeared) == pytest.approx(0.0, abs=1e-12)  # in 16 of 31: enough
+    half_seen = [message.model_copy(update={"capsule_valid": appeared[k].capsule_valid})
+                 for k, message in enumerate(walking[:31])]
+    assert seen_after(half_seen) == pytest.approx(0.9, rel=0.07)  # over the half second it was seen
+    nobody = np.zeros((3, 7), bool)
+    assert seen_speed(np.arange(3.0), np.zeros((3, 7, 2, 3)), nobody) == 0.0
+    assert seen_speed(np.zeros(3), np.zeros((3, 7, 2, 3)), ~nobody) == np.inf  # no time between them
+    assert external_capsules(walking[0], 7, True).seen_speed == np.inf  # one message as it is: unknown
 
 
-def test_a_person_seen_jumping_is_not_still_whatever_their_velocities_say() -> None:
-    """The barrier's ``person_speed`` (what the back-out's stillness reads) is the larger of the
-    measured velocities and ``seen_speed``: a capsule re-initialised after a jump has velocity 0."""
+def test_the_person_speed_is_the_seen_one_whatever_their_velocities_say() -> None:
+    """The barrier's ``person_speed`` (what the back-out's stillness reads) is ``seen_speed``: the
+    measured velocities (a camera's noise gives a still person metres per second; a capsule
+    re-initialised after a jump has 0) do not count; unknown when not told or a capsule is held,
+    0 with nobody there."""
     barrier = build_pipeline(load_config(environ={})).barrier
     message = state(1.0, np.ones(7, bool))
     zero = np.zeros((7, 2, 3))
     capsules = external_capsules(message, barrier.pairs.n_external, False)
-    barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero)
-    assert barrier.person_speed == 0.0
+    barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero + [0.0, 3.0, 0.0], seen_speed=0.04)
+    assert barrier.person_speed == 0.04
     barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero, seen_speed=2.5)
     assert barrier.person_speed == 2.5
-    barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero + [0.0, 3.0, 0.0], seen_speed=2.5)
-    assert barrier.person_speed == 3.0
+    barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero)
+    assert barrier.person_speed == np.inf  # not told
+    barrier.set_external(capsules.endpoints, capsules.radii, capsules.valid, zero, held=np.arange(7) == 2, seen_speed=0.0)
+    assert barrier.person_speed == np.inf
+    barrier.set_external(capsules.endpoints, capsules.radii, np.zeros(7, bool), zero)
+    assert barrier.person_speed == 0.0
     barrier.set_external(*capsules._replace(velocities=zero))  # inf: one message as it is
     assert barrier.person_speed == np.inf
 
 
 def test_the_seen_speed_is_over_the_frames_interval_when_the_states_carry_capture_stamps() -> None:
-    """Two frames 1/30 s apart published 2 ms apart (the first one late after an inference stall):
-    the capsules moved 3 cm between the frames, 0.9 m/s, not 15 m/s."""
-    memory = HumanMemory()
-    memory.update(state(1.0, np.ones(7, bool)).model_copy(update={"stamp": 0.100, "capture_stamp": 0.0}), 0.1, HOLD_S)
-    late = state(1.03, np.ones(7, bool)).model_copy(update={"stamp": 0.102, "capture_stamp": 1 / 30})
-    memory.update(late, 0.102, HOLD_S)
-    assert memory.seen_speed == pytest.approx(0.9)
+    """Frames 1/30 s apart published in bunches 2 ms apart (inference stalling): the window and the
+    speed are the frames' (0.9 m/s), not the publications'."""
+    bunched = [message.model_copy(update={"stamp": 5.0 + (k // 4) * 4 / 30 + (k % 4) * 0.002})
+               for k, message in enumerate(frames(lambda t: 0.9 * t))]
+    assert seen_after(bunched) == pytest.approx(0.9, rel=0.04)

@@ -394,7 +394,7 @@ class SafetyFilter:
         n = q.shape[0]
         A_all, b_all, inside, low_self, rows = self._write_rows(q)
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
-        stop, fixed_stop = self.stops.decide(b_all, rows, p.on_intrusion, dt) if self.enforce else (False, False)
+        stop, fixed_stop = self.stops.decide(b_all, rows, p.on_intrusion) if self.enforce else (False, False)
         settled, backing_out = None, False
         if self.stops.settles(stop, self._u_prev) and q_robot is not None:  # q_cbf brought to the robot
             settled = self._settle_pose(q, q_robot, dt)

@@ -50,13 +50,13 @@ is inside a margin; a person who *stays* there (standing beside the robot with a
 its forearm's margin: a broad person where a narrow one fits) would freeze it for as long as they
 stand. So the stop backs out of them when
 
-- the person stands still: every present person capsule's endpoints slower than
-  :data:`STILL_SPEED` (0.15 m/s: a standing person sways by a few cm/s, a walking one carries the
-  torso at ≥ 0.5 m/s) for the last :data:`STILL_FOR_S` (0.5 s: longer than a keypoint glitch or the
-  turning point of a swing), by their measured velocities and as seen moving between two states
-  (perception reports 0 where it cannot compute a velocity: a capsule re-initialised after a
-  jump); unknown motion (a stale person, a capsule held from memory, one that just appeared) counts
-  as moving, and
+- the person stands still: their capsules seen to move slower than :data:`STILL_SPEED` (0.15 m/s:
+  a standing person sways by a few cm/s, a walking one carries the torso at ≥ 0.5 m/s) over up to
+  the last second (:func:`~services.safety.human_memory.seen_speed`: the uniform speed that would
+  spread a capsule endpoint as far as those frames show, so a camera's frame-to-frame noise
+  averages out while steady or back-and-forth motion counts), seen for at least 0.5 s (longer than
+  a keypoint glitch or the turning point of a swing); unknown motion (a stale person, a capsule
+  held from memory, one seen in under half the frames) counts as moving, and
 - they are inside the margins of the robot's arms only (not the torso's, not the fixed body's).
 
 Then each pair row whose person capsule is inside for certain (``person_inside``, as the stop
@@ -113,11 +113,8 @@ from shared.names import CAPSULE_NAMES
 STOPS = (IntrusionResponse.STOP.value, IntrusionResponse.STOP_ON_GIVE_WAY.value)
 #: a barrier below −VIOLATION_TOL (m) at the start of a step counts as violated
 VIOLATION_TOL = 1e-3
-#: a person whose every capsule endpoint moves slower than this (m/s) for STILL_FOR_S stands still ("Backing out")
+#: a person seen to move slower than this (m/s, :attr:`CollisionGeometry.person_speed`) stands still ("Backing out")
 STILL_SPEED = 0.15
-#: how long (s) a person must have been slower than STILL_SPEED to stand still: longer than a keypoint glitch
-#: or the turning point of a swing
-STILL_FOR_S = 0.5
 #: a command whose every |u*| is at most this (rad/s) is at rest (a protective stop's braking is over)
 AT_REST = 1e-9
 
@@ -136,7 +133,7 @@ def intruded(rows: BarrierRows) -> bool:
 class ProtectiveStop:
     """The stops of one filter: which rows they watch (fixed from the pair barrier and the robot's
     Jacobians at construction) and what they remember between steps (whether the last step aimed
-    at rest, whether its settle at rest was done, how long the person has stood still)."""
+    at rest, whether its settle at rest was done)."""
 
     def __init__(self, barrier: CollisionGeometry, jacobians: np.ndarray) -> None:
         """``barrier``: the filter's pair barrier (its rows come first in the stacked rows);
@@ -159,7 +156,6 @@ class ProtectiveStop:
         """Forget the steps before (the filter restarts)."""
         self._aimed_rest = False  # the last step aimed at rest (a protective stop, or person rows gave way)
         self._rested = False  # since the steps began to aim at rest, a settle at rest was done
-        self._still_for = 0.0  # s the person has been slower than STILL_SPEED
 
     def at_fixed_body(self, b: np.ndarray) -> bool:
         """Whether a robot–person row of a capsule no joint moves asks for a positive rate (``b``
@@ -167,11 +163,9 @@ class ProtectiveStop:
         person is inside its margin or reaches it within the look-ahead."""
         return self._any_positive.call(b, self._fixed_person_rows)
 
-    def decide(self, b: np.ndarray, rows: BarrierRows, on_intrusion: str, dt: float) -> tuple[bool, bool]:
+    def decide(self, b: np.ndarray, rows: BarrierRows, on_intrusion: str) -> tuple[bool, bool]:
         """(whether this step is a protective stop, whether it is the one at the fixed body), from
-        the stacked rows' bounds ``b`` (M,) and the pair barrier's ``rows``; counts ``dt`` (s)
-        toward the person standing still."""
-        self._still_for = self._still_for + dt if self._barrier.person_speed <= STILL_SPEED else 0.0
+        the stacked rows' bounds ``b`` (M,) and the pair barrier's ``rows``."""
         fixed = self.at_fixed_body(b)
         return fixed or (on_intrusion in STOPS and intruded(rows)), fixed
 
@@ -179,13 +173,13 @@ class ProtectiveStop:
                           backout: float) -> bool:
         """A stop's rows, in place in ``b`` (M,), the stacked rows' bounds: every robot–person row
         (``soft`` (M,)) at its floor, b_i ← min(b_i, 0); if ``backs_out`` (not the stop at the
-        fixed body), once the person has stood still (:attr:`CollisionGeometry.person_speed` ≤
-        :data:`STILL_SPEED` for :data:`STILL_FOR_S`) and every pair row whose person capsule is
+        fixed body), while the person stands still (:attr:`CollisionGeometry.person_speed` ≤
+        :data:`STILL_SPEED`) and every pair row whose person capsule is
         inside for certain (:meth:`BarrierRows.person_inside`) is an arm capsule's, those rows keep
         b_i ← min(b_i, ``backout``) (m/s) instead ("Backing out from a person who stands inside").
         Returns whether they did (the step backs out)."""
         pair_b, kept = b[: self._arm_person_rows.shape[0]], None  # the pair rows come first
-        if backs_out and backout > 0.0 and self._still_for >= STILL_FOR_S:
+        if backs_out and backout > 0.0 and self._barrier.person_speed <= STILL_SPEED:
             inside = rows.person_inside(-VIOLATION_TOL)
             if not (inside & ~self._arm_person_rows).any():  # inside the torso's margin too: no back-out
                 kept = np.minimum(pair_b[inside], backout)

@@ -187,9 +187,9 @@ class CollisionGeometry(Barrier):
         #: added to every external capsule's radius at :meth:`set_external` (m; ``safety.human_margin``,
         #: the person sensor's position uncertainty): h of a robot–person row counts it
         self.person_margin = 0.0
-        #: the fastest endpoint of a present external capsule at :meth:`set_external` (m/s), by its
-        #: velocity or as seen moving between states: 0 with none present, inf when unknown (no
-        #: velocities given, a present capsule held, one that just appeared)
+        #: how fast the present external capsules were seen to move at :meth:`set_external` (m/s,
+        #: :func:`~services.safety.human_memory.seen_speed`): 0 with none present, inf when unknown
+        #: (not told, a present capsule held, one that just appeared)
         self.person_speed = 0.0
         self._all_enabled = True
         #: (m,) the monitored pair (index into ``pairs``) of each row; the identity for capsules.
@@ -234,15 +234,17 @@ class CollisionGeometry(Barrier):
         velocities: np.ndarray | None = None,
         sweep: np.ndarray | None = None,
         held: np.ndarray | None = None,
-        seen_speed: float = 0.0,
+        seen_speed: float = math.inf,
     ) -> None:
         """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s; each radius plus
         :attr:`person_margin`); None: none present. ``sweep`` (E,) m: how much each was widened to
         enclose where its velocity carries it (:func:`~services.safety.human_memory.swept_capsules`;
         None: 0), reported per row as :attr:`BarrierRows.sweep`; ``held`` (E,) bool: the capsules
         remembered rather than measured, whose velocity is unknown (None: none); ``seen_speed`` (m/s):
-        how fast they were seen to move between the last two states
-        (:func:`~services.safety.human_memory.seen_speed`). :attr:`person_speed` follows."""
+        how fast they were seen to move over the last states
+        (:func:`~services.safety.human_memory.seen_speed`; inf: unknown). :attr:`person_speed` follows:
+        ``seen_speed``, or inf while a present capsule is held. The measured ``velocities`` do not
+        count there: a camera's noise gives a still person's capsules velocities of metres per second."""
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
@@ -255,9 +257,8 @@ class CollisionGeometry(Barrier):
             self._sweep[ext] = 0.0 if sweep is None else sweep
             self._row_sweep = self._sweep[self._row_capsule]
             present = self._valid[ext]
-            unknown = velocities is None or (held is not None and bool((present & held).any()))
-            self.person_speed = (math.inf if unknown else max(
-                float(np.linalg.norm(self._velocities[ext][present], axis=2).max(initial=0.0)), seen_speed))
+            held_present = held is not None and bool((present & held).any())
+            self.person_speed = math.inf if held_present else seen_speed if present.any() else 0.0
             self._external_changed()
         self._all_enabled = bool(self._valid.all())
         self._row_enabled = self._row_all_enabled if self._all_enabled else self._valid[self._row_capsule]
