@@ -47,12 +47,13 @@ def random_safe_state(p, rng: np.random.Generator) -> np.ndarray:
             return q
 
 
-def random_intrusion(p, rng: np.random.Generator, *others, speeds: tuple[float, float] = (1.0, 3.0)):
-    """A random joint state whose self rows and joint barriers hold, and a person's capsules pushed
-    into the margin of the robot's left forearm at ``speeds`` (m/s, uniform; 1–3 by default) toward it,
-    as measured and as seen (in ``others``' barriers too)."""
+def random_intrusion(p, rng: np.random.Generator, *others, speeds: tuple[float, float] = (1.0, 3.0),
+                     q: np.ndarray | None = None):
+    """A random joint state whose self rows and joint barriers hold (or ``q``), and a person's capsules
+    pushed into the margin of the robot's left forearm at ``speeds`` (m/s, uniform; 1–3 by default)
+    toward it, as measured and as seen (in ``others``' barriers too)."""
     kin = p.kinematics
-    q = random_safe_state(p, rng)
+    q = random_safe_state(p, rng) if q is None else q
     endpoints, _ = kin.compute(q)
     forearm = endpoints[FOREARM]
     centre = forearm.mean(axis=0) + rng.normal(scale=0.03, size=3)
@@ -108,6 +109,51 @@ def test_the_lexicographic_solve_is_feasible_and_least_violating_on_random_row_s
         assert result.slack[soft].sum() == pytest.approx(least, abs=1e-4 * max(1.0, least))
         gave += result.gave
     assert gave >= 30, "the random rows must mostly be infeasible together"
+
+
+def test_in_an_acceleration_bound_the_braking_point_keeps_the_hard_rows_on_random_row_sets() -> None:
+    """:class:`LexicographicSolver` in a box around a moving command u_prev that excludes rest (an
+    acceleration bound), with hard rows that hold (b ≤ 0) and that some u of the box keeps, and soft
+    rows demanding a retreat: where the box's point nearest rest, clip(0), breaks a hard row (an arm
+    sliding along its own body, braked joint by joint, would turn into it), the braking point ū is
+    instead the box's point nearest rest that keeps them, so the solve still succeeds in that box
+    (the filter widens the bound only when it fails): u within the box, the hard rows held, no soft
+    row below min(b_i, 0, A_i ū). A box no u of which keeps a hard row fails at once."""
+    rng = np.random.default_rng(77)
+    solver = LexicographicSolver()
+    turned = 0
+    for _ in range(80):
+        n, m = 8, int(rng.integers(6, 20))
+        u_prev = rng.uniform(-3.0, 3.0, n)
+        reach = rng.uniform(0.05, 0.5, n)
+        lower, upper = u_prev - reach, u_prev + reach
+        keeps = rng.uniform(lower, upper)  # a point of the box every hard row holds at
+        A = rng.normal(size=(m, n))
+        soft = rng.random(m) < 0.5
+        b = np.where(soft, rng.uniform(-1.0, 10.0, m), np.minimum(A @ keeps - rng.uniform(0.0, 0.3, m), 0.0))
+        problem = QPProblem(w=rng.uniform(0.5, 2.0, n), u_ref=rng.uniform(-5.0, 5.0, n), A=A, b=b, lower=lower, upper=upper)
+        brake, _ = solver.braking(problem, b, ~soft)
+        assert brake is not None
+        assert (lower - TOL <= brake).all() and (brake <= upper + TOL).all()
+        assert (A[~soft] @ brake >= b[~soft] - TOL).all()
+        nearest = np.clip(0.0, lower, upper)
+        if (A[~soft] @ nearest < b[~soft] - TOL).any():
+            turned += 1
+            assert problem.w @ brake**2 <= problem.w @ keeps**2 + TOL  # nearer rest than any other point keeping them
+        else:
+            np.testing.assert_array_equal(brake, nearest)
+        result = solver.solve(problem, soft, np.zeros(m), 100.0)
+        assert result.u is not None and np.isfinite(result.u).all()
+        assert (lower - TOL <= result.u).all() and (result.u <= upper + TOL).all()
+        lhs = A @ result.u
+        assert (lhs[~soft] >= b[~soft] - TOL).all(), "a hard row gave way"
+        assert (lhs[soft] >= np.minimum(np.minimum(b[soft], 0.0), A[soft] @ brake) - TOL).all()
+    assert turned >= 20, "clip(0) must often break a hard row for this test to mean anything"
+    beyond = QPProblem(w=np.ones(2), u_ref=np.zeros(2), A=np.array([[1.0, 0.0], [0.0, 1.0]]), b=np.array([-0.1, 5.0]),
+                       lower=np.array([-3.0, -1.0]), upper=np.array([-2.0, 1.0]))
+    hard = np.array([True, False])
+    assert solver.braking(beyond, beyond.b, hard)[0] is None  # u_0 ≥ −0.1 nowhere in [−3, −2]
+    assert solver.solve(beyond, ~hard, np.zeros(2), 100.0).u is None
 
 
 @pytest.mark.parametrize("backend", ["daqp", "osqp"])
@@ -702,7 +748,8 @@ def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> 
     the acceleration bound cannot always reach a retreat; the self rows and joint barriers still
     hold; within the bound no person row closes faster than braking as hard as the bound allows
     (A_i u ≥ min(b_i, 0, A_i ū), ū the bounded box's point nearest rest); when the bound gave way
-    it is named."""
+    it is named, and beyond twice the bound (the motors' full torque) only where no u within that
+    keeps the hard rows (SciPy's LP), never for a person's floor alone."""
     p = pipeline_for(on_intrusion="retreat")
     rng = np.random.default_rng(seed)
     gave = 0
@@ -710,18 +757,77 @@ def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> 
         q = random_intrusion(p, rng)
         A, b, soft = stacked(p, q)
         p.filter.reset(q)
-        p.filter._u_prev = rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)  # noqa: SLF001 (the state a previous step leaves)
-        bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, DT))  # noqa: SLF001
+        u_prev = rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)
+        p.filter._u_prev = u_prev.copy()  # noqa: SLF001 (the state a previous step leaves)
+        boxes = p.filter._boxes(q, DT)  # noqa: SLF001
+        bounded_lower, bounded_upper, _ = next(boxes)
+        twice_lower, twice_upper, _ = next(boxes)  # the bound ×2
         brake = np.clip(0.0, bounded_lower, bounded_upper)
         result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT)
         lhs = A @ result.u
         assert result.mode is not SafetyMode.HOLD and np.isfinite(result.u).all()
         assert (lhs[~soft] >= b[~soft] - 1e-6).all()
+        if ((result.u < twice_lower - 1e-9) | (result.u > twice_upper + 1e-9)).any():  # beyond the motors' torque
+            holding = ~soft & (b <= 0.0)  # the hard rows that hold (b without the self margin)
+            keep = linprog(np.zeros(len(u_prev)), A_ub=-A[holding], b_ub=-b[holding],
+                           bounds=list(zip(twice_lower, twice_upper)), method="highs")
+            assert keep.status == 2, "the bound was widened beyond ×2 for a person's floor"
         if "accel_max" in result.gave_way:
             gave += 1
         else:
             assert (lhs[soft] >= np.minimum(np.minimum(b[soft], 0.0), A[soft] @ brake) - 1e-6).all()
     assert gave > 0, "some intrusion must need more than the acceleration bound"
+
+
+def test_an_arm_sliding_along_its_own_body_brakes_for_a_person_within_the_motors_torque() -> None:
+    """Random states 0–2 mm outside a self pair's margin, the robot moving along that boundary (its
+    row's A_i u = 0) at up to half its speed bounds, and a person rushing into the left forearm's
+    margin: braking every joint at once for the person would turn the arm into its own body. The
+    hard rows hold and the command stays within twice the acceleration bound (the motors' full
+    torque) wherever some u there keeps the hard rows (SciPy's LP): the bound is not widened into a
+    jump the servos cannot follow for the person's sake (it was, by up to 14 rad/s in one step)."""
+    p = pipeline_for()
+    kin, gamma = p.kinematics, p.filter.params.gamma
+    self_rows = np.concatenate([np.full(len(b.row_names()), not isinstance(b, JointBarrier)) for b in p.filter.barriers])
+    rng = np.random.default_rng(29)
+    checked = 0
+    for _ in range(400):
+        q0 = random_safe_state(p, rng)
+        direction = rng.normal(size=8)
+        direction /= np.linalg.norm(direction)
+        low, high = 0.0, 1.0  # bisect along the direction to 0–2 mm outside a self pair's margin
+        _, b_far, soft = stacked(p, np.clip(q0 + high * direction, kin.q_min, kin.q_max))
+        if (b_far[~soft & self_rows] <= 0.0).all():
+            continue
+        for _ in range(40):
+            mid = 0.5 * (low + high)
+            _, b_mid, _ = stacked(p, np.clip(q0 + mid * direction, kin.q_min, kin.q_max))
+            low, high = (mid, high) if (b_mid[~soft] <= 0.0).all() else (low, mid)
+        q = np.clip(q0 + low * direction, kin.q_min, kin.q_max)
+        random_intrusion(p, rng, q=q)
+        A, b, soft = stacked(p, q)
+        holding = ~soft & (b <= 0.0)
+        near = np.flatnonzero(holding & self_rows & (b > -gamma * 2e-3))
+        if len(near) == 0 or (b[~soft] > 0.0).any():
+            continue
+        row = A[near[0]]
+        u_prev = rng.uniform(-0.5, 0.5) * p.filter.params.u_max
+        u_prev -= (row @ u_prev) / (row @ row) * row  # sliding along the boundary
+        p.filter.reset(q)
+        p.filter._u_prev = u_prev.copy()  # noqa: SLF001 (the state a previous step leaves)
+        boxes = p.filter._boxes(q, DT)  # noqa: SLF001
+        next(boxes)
+        twice_lower, twice_upper, _ = next(boxes)
+        result = p.filter.step(rng.uniform(kin.q_min, kin.q_max), DT)
+        assert (A[holding] @ result.u >= b[holding] - 1e-6).all(), "a self row or joint barrier gave way"
+        if ((result.u < twice_lower - 1e-9) | (result.u > twice_upper + 1e-9)).any():
+            keep = linprog(np.zeros(8), A_ub=-A[holding], b_ub=-b[holding], bounds=list(zip(twice_lower, twice_upper)),
+                           method="highs")
+            assert keep.status == 2, "the bound was widened beyond ×2 for a person's floor"
+        checked += 1
+        if checked == 40:
+            break
+    assert checked == 40
 
 
 def test_warm_up_compiles_the_kernels_only_an_infeasible_step_uses() -> None:

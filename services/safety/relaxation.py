@@ -9,10 +9,15 @@ fall to its floor
     f_i = min(b⁰_i, 0)                        a hard row (b⁰_i ≤ 0: it holds)
     f_i = min(b⁰_i, 0, A_i ū)                 a soft (robot–person) row, or a hard one already violated
 
-with ū the box's point nearest rest (0 in a velocity box; inside an acceleration bound the hardest
-braking it allows): σ_i ∈ [0, b_i − f_i], A_i u + σ_i ≥ b_i. Only rows with b_i > f_i get a slack
-variable: a hard row that holds even with its margin (b_i ≤ 0) has none, one inside its margin
-only the margin's. Two QPs in order:
+with ū the braking point: the box's point nearest rest, 0 in a velocity box; inside an
+acceleration bound the hardest braking it allows, ū = clip(0, lower, upper). With ``keep_hard``,
+where that breaks a hard row that holds (A_i ū < b⁰_i: the arm slides along its own body and
+braking every joint at once would turn it in), ū is instead the nearest to rest of the box's
+points that keep them, ū = argmin ½‖u‖²_W s.t. A_i u ≥ b⁰_i on those rows
+(:meth:`LexicographicSolver.braking`): the robot closes on a person no faster than it can brake
+without hitting itself. σ_i ∈ [0, b_i − f_i],
+A_i u + σ_i ≥ b_i. Only rows with b_i > f_i get a slack variable: a hard row that holds even with its
+margin (b_i ≤ 0) has none, one inside its margin only the margin's. Two QPs in order:
 
 1. least violation: min Σ c_i σ_i + ½ε‖u − u_ref‖²_W + ½ε‖σ‖² (strictly convex), c_i = 1 for a soft
    row and ``relax_penalty`` for a hard row already violated;
@@ -21,10 +26,15 @@ only the margin's. Two QPs in order:
    ū when a soft row gave way in stage 1 (:func:`intrudes`: the protective stop); with ``rest`` both
    stages aim at ū.
 
-*Feasible by construction* whenever ū satisfies the hard rows that hold, A_i ū ≥ f_i: u = ū,
-σ_i = max(b_i − A_i ū, 0) is within every σ_i's bounds (A_i ū ≥ f_i: by the choice of f_i on a
-soft or violated row), and a row without slack has b_i = f_i. In a velocity box (ū = 0) a hard row
-that holds has f_i = b⁰_i ≤ 0 = A_i ū, so stage 1 is feasible there always (the filter's last box).
+*Feasible by construction*, with ``keep_hard``, whenever some u in the box keeps the hard rows that
+hold, A_i u ≥ b⁰_i (then ū exists): u = ū, σ_i = max(b_i − A_i ū, 0) is within every σ_i's bounds (A_i ū ≥ f_i: by the
+choice of f_i on a soft or violated row, by the choice of ū on a hard row that holds), and a row
+without slack has b_i = f_i. In a velocity box ū = 0 keeps every hard row that holds (b⁰_i ≤ 0 =
+A_i 0), so stage 1 is feasible there always (the filter's last box). Without ū (no u in the box
+keeps those rows) the solve reports failure at once and the filter tries its next, wider box.
+Without ``keep_hard`` a ū that breaks a hard row may leave the box infeasible: the filter's first
+boxes, within the motors' torque, keep the person's floors that way when they can
+(:class:`~services.safety.filter.SafetyFilter`, "Acceleration bound").
 
 Both stages are solved by DAQP, whatever backend the plain QP uses: an active-set solver is exact
 on these small LP-like, badly scaled problems (costs up to ``relax_penalty`` against the
@@ -71,25 +81,30 @@ class RelaxedSolution:
 
 
 class LexicographicSolver:
-    """The two stages of the module docstring, each on its own DAQP instance (warm starts kept
-    apart)."""
+    """The two stages of the module docstring and the braking point ū, each on its own DAQP instance
+    (warm starts kept apart)."""
 
     def __init__(self) -> None:
         self._least: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
         self._tracking: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
+        self._braking: QPBackend = make_backend("daqp", primal_tol=RELAXED_PRIMAL_TOL)
 
     def solve(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray, relax_penalty: float,
-              rest: bool = False) -> RelaxedSolution:
+              rest: bool = False, keep_hard: bool = True) -> RelaxedSolution:
         """Relax ``problem``'s rows (``soft`` (m,) bool: the robot–person rows; ``margin`` (m,) each
         row's b shift) at stage-1 cost ``relax_penalty`` for a violated hard row; with ``rest`` both
-        stages aim at ū instead of ``problem.u_ref``. If only stage 2 fails, stage 1's u is
-        returned."""
+        stages aim at ū instead of ``problem.u_ref``; ``keep_hard``: ū keeps the hard rows that hold
+        (:meth:`braking`; else it is the box's point nearest rest). If only stage 2 fails, stage 1's
+        u is returned."""
         n, m = problem.n, problem.m
         own = problem.b - margin
         floor = np.minimum(own, 0.0)
-        brake = np.clip(0.0, problem.lower, problem.upper)  # the box's point nearest rest: 0 in a velocity box
-        reference = brake if rest else problem.u_ref
         give = soft | (own > 0.0)
+        brake, seconds = (self.braking(problem, own, ~give) if keep_hard else
+                          (np.clip(0.0, problem.lower, problem.upper), 0.0))
+        if brake is None:  # no u in this box keeps the hard rows that hold
+            return RelaxedSolution(None, np.zeros(m), seconds, False)
+        reference = brake if rest else problem.u_ref
         floor[give] = np.minimum(floor[give], problem.A[give] @ brake)
         slack_cap = problem.b - floor
         loose = np.flatnonzero(slack_cap > 0.0)
@@ -105,9 +120,10 @@ class LexicographicSolver:
                           u_ref=np.concatenate([reference, -cost / _EPS]), A=A, b=problem.b,
                           lower=lower, upper=np.concatenate([problem.upper, cap]))
         first = self._least.solve(least)
+        seconds += first.solve_time_s
         slack = np.zeros(m)
         if first.u is None:
-            return RelaxedSolution(None, slack, first.solve_time_s, False)
+            return RelaxedSolution(None, slack, seconds, False)
         sigma = np.clip(first.u[n:], 0.0, cap)
         # stage 2: min ½‖u − target‖²_W + ½ε‖σ‖²  with σ ≤ σ* (stage 1's solution is feasible here);
         # target = u_ref, or ū while a person row gives way (the protective stop)
@@ -119,4 +135,17 @@ class LexicographicSolver:
         second = self._tracking.solve(tracking)
         best = second if second.u is not None else first
         slack[loose] = np.clip(best.u[n:], 0.0, cap)
-        return RelaxedSolution(best.u[:n], slack, first.solve_time_s + second.solve_time_s, gave)
+        return RelaxedSolution(best.u[:n], slack, seconds + second.solve_time_s, gave)
+
+    def braking(self, problem: QPProblem, own: np.ndarray, hard: np.ndarray) -> tuple[np.ndarray | None, float]:
+        """(ū, seconds): the braking point of ``problem``'s box (module docstring): clip(0, lower, upper)
+        if it keeps the ``hard`` (m,) rows that hold at their own bounds ``own`` (m,), A_i ū ≥ own_i
+        (within the solver's tolerance), else the point of the box nearest rest in the W-norm that
+        keeps them; None when none does."""
+        brake = np.clip(0.0, problem.lower, problem.upper)
+        A, bound = problem.A[hard], own[hard]
+        if (A @ brake >= bound - RELAXED_PRIMAL_TOL).all():
+            return brake, 0.0
+        nearest = self._braking.solve(QPProblem(w=problem.w, u_ref=np.zeros(problem.n), A=A, b=bound,
+                                                lower=problem.lower, upper=problem.upper))
+        return nearest.u, nearest.solve_time_s
