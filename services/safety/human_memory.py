@@ -105,11 +105,11 @@ def seen_speed(stamps: np.ndarray, endpoints: np.ndarray, valid: np.ndarray) -> 
 
 def padded(
     n_external: int, endpoints: np.ndarray, radii: np.ndarray, valid: np.ndarray, velocities: np.ndarray | None,
-    sweep: np.ndarray | None = None, held: np.ndarray | None = None, moved: float = 0.0,
+    sweep: np.ndarray | None = None, held: np.ndarray | None = None, moved: float = math.inf,
 ) -> ExternalCapsules:
     """One person's capsules in the pair set's ``n_external`` slots (7 per person; the ``paper72``
     preset has a second person): this person fills the first 7, the other slots stay invalid
-    (disabled rows); ``moved`` (m/s): their :attr:`ExternalCapsules.seen_speed`."""
+    (disabled rows); ``moved`` (m/s): their :attr:`ExternalCapsules.seen_speed` (inf: unknown)."""
     n = min(n_external, endpoints.shape[0])
     out = ExternalCapsules(np.zeros((n_external, 2, 3)), np.zeros(n_external), np.zeros(n_external, bool),
                            None if velocities is None else np.zeros((n_external, 2, 3)),
@@ -129,8 +129,7 @@ def external_capsules(message: HumanState, n_external: int, use_velocity: bool) 
     """One message's capsules as they are (no memory) in ``n_external`` slots (see :func:`padded`);
     how they moved since a state before is unknown (``seen_speed`` inf, as for a first message)."""
     velocities = message.capsule_velocities if use_velocity else None
-    return padded(n_external, message.capsules, message.capsule_radii, message.capsule_valid, velocities,
-                  moved=math.inf)
+    return padded(n_external, message.capsules, message.capsule_radii, message.capsule_valid, velocities)
 
 
 def swept_capsules(endpoints: np.ndarray, radii: np.ndarray, velocities: np.ndarray,
