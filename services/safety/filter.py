@@ -518,10 +518,9 @@ class SafetyFilter:
         boxes of :meth:`_boxes` up to the bound ×:data:`MOTOR_WIDENING` braking at their point
         nearest rest (the person's floors as hard as the motors can), then that box again and every
         wider one braking at the nearest point to rest that keeps the hard rows (module docstring).
-        Without a bound, the velocity box, where the two are the same point (0)."""
-        bounded = self.params.accel_max is not None and self._u_prev is not None
-        factors = (*ACCEL_WIDENING, math.inf) if bounded else (math.inf,)
-        for factor, (lower, upper, honours) in zip(factors, self._boxes(q, dt)):
+        Without a bound, :meth:`_boxes` gives the velocity box alone, paired here with the first
+        factor: its point nearest rest, 0, keeps every hard row that holds, so it is the same ū."""
+        for factor, (lower, upper, honours) in zip((*ACCEL_WIDENING, math.inf), self._boxes(q, dt)):
             if factor <= MOTOR_WIDENING:
                 yield lower, upper, honours, False
             if factor >= MOTOR_WIDENING:

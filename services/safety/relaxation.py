@@ -100,8 +100,7 @@ class LexicographicSolver:
         own = problem.b - margin
         floor = np.minimum(own, 0.0)
         give = soft | (own > 0.0)
-        brake, seconds = (self.braking(problem, own, ~give) if keep_hard else
-                          (np.clip(0.0, problem.lower, problem.upper), 0.0))
+        brake, seconds = self.braking(problem, own, ~give, keep_hard)
         if brake is None:  # no u in this box keeps the hard rows that hold
             return RelaxedSolution(None, np.zeros(m), seconds, False)
         reference = brake if rest else problem.u_ref
@@ -137,14 +136,15 @@ class LexicographicSolver:
         slack[loose] = np.clip(best.u[n:], 0.0, cap)
         return RelaxedSolution(best.u[:n], slack, seconds + second.solve_time_s, gave)
 
-    def braking(self, problem: QPProblem, own: np.ndarray, hard: np.ndarray) -> tuple[np.ndarray | None, float]:
+    def braking(self, problem: QPProblem, own: np.ndarray, hard: np.ndarray,
+                keep_hard: bool = True) -> tuple[np.ndarray | None, float]:
         """(ū, seconds): the braking point of ``problem``'s box (module docstring): clip(0, lower, upper)
-        if it keeps the ``hard`` (m,) rows that hold at their own bounds ``own`` (m,), A_i ū ≥ own_i
-        (within the solver's tolerance), else the point of the box nearest rest in the W-norm that
-        keeps them; None when none does."""
+        without ``keep_hard`` or if it keeps the ``hard`` (m,) rows that hold at their own bounds ``own``
+        (m,), A_i ū ≥ own_i (within the solver's tolerance), else the point of the box nearest rest in
+        the W-norm that keeps them; None when none does."""
         brake = np.clip(0.0, problem.lower, problem.upper)
         A, bound = problem.A[hard], own[hard]
-        if (A @ brake >= bound - RELAXED_PRIMAL_TOL).all():
+        if not keep_hard or (A @ brake >= bound - RELAXED_PRIMAL_TOL).all():
             return brake, 0.0
         nearest = self._braking.solve(QPProblem(w=problem.w, u_ref=np.zeros(problem.n), A=A, b=bound,
                                                 lower=problem.lower, upper=problem.upper))
