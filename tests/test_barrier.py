@@ -261,3 +261,46 @@ def test_the_person_margin_thickens_every_person_capsule_and_nothing_else(geomet
         np.testing.assert_allclose(thin.h[~is_self] - thick.h[~is_self], 0.03, atol=1e-12)
     else:
         assert (thin.h[~is_self] - thick.h[~is_self] >= 0.015 - 1e-9).all()
+
+
+@pytest.mark.parametrize("geometry", ["capsule", "spheres", "box"])
+def test_a_swept_person_is_judged_inside_on_the_capsules_as_measured_on_random_states(geometry: str) -> None:
+    """``BarrierRows.h_measured``: with the person swept ahead (``swept_capsules``, 0.093 s at up to
+    3 m/s), every robot–person row the swept capsule puts inside its margin (h < 0) carries the h of
+    the person capsule *as measured* against the robot capsule, d − (r_robot + r_person + δ + φ);
+    every other row keeps h, which is never above the measured h (the swept capsule encloses the
+    measured one); and with the capsules themselves, ``person_inside`` is exactly that of the same
+    barrier given the measured capsules unswept. Without a sweep there is nothing to measure (None)."""
+    from services.safety.human_memory import padded, swept_capsules
+
+    rng = np.random.default_rng(42)
+    config = load_config(environ={}, overrides={"safety": {"geometry": geometry}})
+    p, plain, capsule = build_pipeline(config), build_pipeline(config), build_pipeline(load_config(environ={}))
+    kin = p.kinematics
+    inside = 0
+    for _ in range(40):
+        q = random_q(kin, rng)
+        robot, _ = kin.compute(q)
+        capsules = robot[rng.integers(0, N_ROBOT, 7)] + rng.normal(scale=0.06, size=(7, 2, 3))  # about the robot's links
+        radii, velocities = rng.uniform(0.03, 0.07, 7), rng.uniform(-1.7, 1.7, (7, 2, 3))
+        ends, swept_radii, sweep = swept_capsules(capsules, radii, velocities, 0.093)
+        p.barrier.set_external(*padded(7, ends, swept_radii, np.ones(7, bool), velocities, sweep, None, np.inf,
+                                       capsules))
+        for other in (plain, capsule):
+            other.barrier.set_external(capsules, radii, np.ones(7, bool), velocities)
+        rows, seen = p.filter.rows_at(q), plain.filter.rows_at(q)
+        exact = capsule.filter.rows_at(q).h[p.barrier.row_pair]  # the measured capsules' own h, per row's pair
+        if rows.min_h_all >= 0.0:
+            assert rows.h_measured is None
+            continue
+        person = rows.soft & rows.enabled
+        under = person & (rows.h < 0.0)
+        np.testing.assert_allclose(rows.h_measured[under], exact[under], atol=1e-9)
+        np.testing.assert_array_equal(rows.h_measured[person & ~under], rows.h[person & ~under])
+        inside += int(under.sum())
+        if geometry == "capsule":
+            assert (exact[person] >= rows.h[person] - 1e-9).all(), "the swept capsule encloses the measured one"
+            np.testing.assert_array_equal(rows.person_inside(-1e-3), seen.person_inside(-1e-3))
+    assert inside >= 20
+    p.barrier.set_external(capsules, radii, np.ones(7, bool), velocities)
+    assert p.filter.rows_at(q).h_measured is None

@@ -10,6 +10,7 @@ real Pinocchio, DAQP and OSQP; the least violation is checked against SciPy's LP
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from scipy.optimize import linprog
 
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
-from services.safety.filter import movable_rows
+from services.safety.filter import MOTOR_WIDENING, movable_rows
 from services.safety.human_memory import padded, swept_capsules
 from services.safety.qp import QPProblem
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
@@ -271,7 +272,7 @@ def assert_a_stop_that_never_closes_in(result, A: np.ndarray, b: np.ndarray, sof
     """``result`` (a step from the rows of :func:`stop_rows`) is a protective stop aiming at rest
     (u_ref = 0), finite, not HOLD; the hard rows hold and no person row is approached faster than
     braking as hard as the acceleration bound allows (its floor min(b_i, 0), retreat demands b_i > 0
-    included)."""
+    included; a stop's plain step keeps min(b_i, 0) itself, in the bound ×2)."""
     assert result.protective_stop and np.isfinite(result.u).all() and result.mode is not SafetyMode.HOLD
     np.testing.assert_array_equal(result.u_ref, 0.0)
     lhs = A @ result.u
@@ -324,6 +325,34 @@ def test_a_person_at_the_legs_stops_the_robot_without_a_retreat_on_random_states
         for walking, stops in ((0.0, False), (0.5, False), (2.0, True)):  # within the look-ahead at 2 m/s
             person_in_the_legs(p, rng, p.filter.q_cbf, inside=False, walking=walking)
             assert p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop is stops, walking
+
+
+def test_a_protective_stop_brakes_with_the_motors_full_torque_on_random_states() -> None:
+    """A stop decided from the rows (here a person walking into the legs at 2 m/s, who reaches the
+    thigh's margin within the look-ahead), where its rows are feasible, brakes within twice the
+    acceleration bound, the motors' full torque (``safety.accel_max`` is about half of it): from a
+    robot moving at up to a quarter of its velocity bounds the command changes by at most 2·a·Δt per
+    joint and by more than a·Δt on some joint (the bound alone would take twice as long to stop, the
+    arm moving on into where the person, seen a camera latency ago, already is). Where the rows are
+    infeasible the relaxed solve tries the bound ×1 first, as any step."""
+    p = pipeline_for(on_intrusion="retreat")
+    rng = np.random.default_rng(41)
+    a, harder = p.filter.params.accel_max, 0
+    for _ in range(25):
+        q = random_safe_state(p, rng)
+        person_in_the_legs(p, rng, q, inside=False, walking=2.0)
+        p.filter.reset(q)
+        u_prev = 0.25 * rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)
+        p.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
+        result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT, np.zeros(8))
+        assert result.protective_stop
+        if result.mode is SafetyMode.RELAXED:  # the rows infeasible together: the relaxed solve's boxes
+            continue
+        change = np.abs(result.u - u_prev)
+        assert (change <= MOTOR_WIDENING * a * DT + 1e-9).all()
+        assert (change > 1.01 * a * DT).any()
+        harder += 1
+    assert harder >= 10
 
 
 def test_a_person_inside_a_margin_stops_the_robot_without_a_retreat_on_random_states() -> None:
@@ -911,9 +940,9 @@ def test_a_swept_person_stops_the_robot_only_once_the_measured_capsule_is_inside
     (:func:`swept_capsules`), so that the swept capsule is inside the margin and the
     measured one is not. On random states with the imitation pulling anywhere: no protective stop
     (the rows keep the person out), where the same rows without the sweep reported would stop the
-    robot; once the measured capsule is itself 3–6 cm inside (approaching at 0.5–1.5 m/s, so that the
-    sweep does not carry it across the forearm's axis, where h + 2·sweep is no longer h as measured
-    but only a bound above it), the swept one stops the robot too."""
+    robot; once the measured capsule is itself 3–6 cm inside, the swept one stops the robot too at
+    every speed: at 1–3 m/s the sweep carries it up to 14 cm, past the forearm's axis, where the
+    bound h + 2·sweep the stop once took read it as outside (``BarrierRows.h_measured`` is exact)."""
     p = pipeline_for()
     rng = np.random.default_rng(31)
     kin = p.kinematics
@@ -921,7 +950,8 @@ def test_a_swept_person_stops_the_robot_only_once_the_measured_capsule_is_inside
 
     def step(capsules, velocities, radius, sweep_reported, q, q_nom):
         ends, radii, sweep = swept_capsules(capsules, np.full(7, radius), velocities, 0.093)
-        p.barrier.set_external(*padded(7, ends, radii, np.ones(7, bool), velocities, sweep if sweep_reported else None))
+        p.barrier.set_external(*padded(7, ends, radii, np.ones(7, bool), velocities,
+                                       *((sweep, None, math.inf, capsules) if sweep_reported else ())))
         fixed = p.filter.stops.at_fixed_body(np.concatenate([blk.b for blk in p.filter.blocks_at(q)]))
         p.filter.reset(q)
         return fixed, p.filter.step(q_nom, DT, np.zeros_like(q_nom)).protective_stop
@@ -953,7 +983,6 @@ def test_a_swept_person_stops_the_robot_only_once_the_measured_capsule_is_inside
             continue
         assert not stop, "a capsule only expected inside must be kept out by the rows, not stop the robot"
         assert step(outside, velocities, radius, False, q, q_nom)[1], "read as inside without the sweep: a stop"
-        slower = 0.5 * velocities  # swept less far than the forearm's axis: the bound is then exact
-        assert step(person(-rng.uniform(0.03, 0.06)), slower, radius, True, q, q_nom)[1], "measured inside: a stop"
+        assert step(person(-rng.uniform(0.03, 0.06)), velocities, radius, True, q, q_nom)[1], "measured inside: a stop"
         kept_out += 1
     assert kept_out >= 15

@@ -36,8 +36,11 @@ into its own body, and wider boxes serve the hard rows alone. Before, a person w
 robot's arm while it slid along its own body widened the bound until the floor held: a command
 jump of 14 rad/s in one step (traced with a noisy camera on a broad person punching) that the
 servos trailed by 0.19 rad, 11 mm deeper into the robot's own margin at its joints than at the
-command. ``ddq`` = (u* − u_prev)/Δt is the command's acceleration (the executor's inertial
-feed-forward). After :meth:`SafetyFilter.reset` there is no u_prev and no bound for one step.
+command. A protective stop decided from the rows brakes within the bound ×2 (the motors' full
+torque; :mod:`services.safety.protective_stop`) when its rows allow; its relaxed solve, where they
+do not, tries the boxes above from ×1 as any step (braking every relaxed step at full torque left
+the servos trailing: measured in the README). ``ddq`` = (u* − u_prev)/Δt is the command's
+acceleration (the executor's inertial feed-forward). After :meth:`SafetyFilter.reset` there is no u_prev and no bound for one step.
 
 **Prioritised relaxation.** When the rows are infeasible together (a person moving into the robot
 faster than it can retreat), every row i gets a slack σ_i ∈ [0, max(b_i, 0)] (A_i u + σ_i ≥ b_i,
@@ -218,8 +221,8 @@ class StepResult:
     facts; ``relaxed`` (m,) the pair rows that gave way (their slack > 0; all False unless RELAXED,
     then a shared read-only array);
     ``intrusion``: a person capsule, as measured, is inside the margin (h < 0 on a soft pair row;
-    h + 2·sweep < 0 where the person is swept ahead) while the robot retreats from or holds against
-    it (A_i u* ≥ 0); ``gave_way`` the names of every row of
+    :attr:`BarrierRows.h_measured` < 0 where the person is swept ahead) while the robot retreats from
+    or holds against it (A_i u* ≥ 0); ``gave_way`` the names of every row of
     any barrier that gave way (:meth:`Barrier.row_names`, each once); ``min_h_self`` (m) the
     smallest h over the self-collision distance rows of every barrier (pair and static; None: none);
     ``ddq`` (n,) rad/s² the command's acceleration (u* − u_prev)/Δt (zero after a reset);
@@ -433,6 +436,10 @@ class SafetyFilter:
                                         self._stacked)
         lower, upper = self._box_views[bounded]
         A, b, stacked = self._qp_views(k)
+        if stop and bounded:  # a protective stop brakes with the motors' full torque (module docstring)
+            lower, upper, honours = reach_box(u_prev, accel, MOTOR_WIDENING, dt, self._limits[LOWER],
+                                              self._limits[UPPER])
+            stacked[1][:n], stacked[2][:n] = lower, upper
         problem = QPProblem(p.weights, u_ref, A, b, lower, upper, stacked)
         solution = self._qp.solve(problem)
         qp_time = solution.solve_time_s

@@ -52,7 +52,7 @@ class ExternalCapsules(NamedTuple):
     how much each radius grew to enclose the capsule swept ahead (None: none swept), held (E,) bool
     the slots remembered rather than measured in the newest message, whose velocity (0) is unknown
     (None: none), seen_speed m/s how fast the person was seen to move (:func:`seen_speed`; inf:
-    unknown)."""
+    unknown), measured (E,2,3) m the endpoints as measured, before the sweep (None: none swept)."""
 
     endpoints: np.ndarray
     radii: np.ndarray
@@ -61,6 +61,7 @@ class ExternalCapsules(NamedTuple):
     sweep: np.ndarray | None = None
     held: np.ndarray | None = None
     seen_speed: float = math.inf
+    measured: np.ndarray | None = None
 
 
 #: The window (s) over which :func:`seen_speed` judges how a person moved: long enough for a camera's
@@ -106,16 +107,21 @@ def seen_speed(stamps: np.ndarray, endpoints: np.ndarray, valid: np.ndarray) -> 
 def padded(
     n_external: int, endpoints: np.ndarray, radii: np.ndarray, valid: np.ndarray, velocities: np.ndarray | None,
     sweep: np.ndarray | None = None, held: np.ndarray | None = None, moved: float = math.inf,
+    measured: np.ndarray | None = None,
 ) -> ExternalCapsules:
     """One person's capsules in the pair set's ``n_external`` slots (7 per person; the ``paper72``
     preset has a second person): this person fills the first 7, the other slots stay invalid
-    (disabled rows); ``moved`` (m/s): their :attr:`ExternalCapsules.seen_speed` (inf: unknown)."""
+    (disabled rows); ``moved`` (m/s): their :attr:`ExternalCapsules.seen_speed` (inf: unknown);
+    ``measured``: with a ``sweep``, the endpoints before it."""
     n = min(n_external, endpoints.shape[0])
     out = ExternalCapsules(np.zeros((n_external, 2, 3)), np.zeros(n_external), np.zeros(n_external, bool),
                            None if velocities is None else np.zeros((n_external, 2, 3)),
                            None if sweep is None else np.zeros(n_external),
-                           None if held is None else np.zeros(n_external, bool), moved)
+                           None if held is None else np.zeros(n_external, bool), moved,
+                           None if measured is None else np.zeros((n_external, 2, 3)))
     out.endpoints[:n], out.radii[:n], out.valid[:n] = endpoints[:n], radii[:n], valid[:n]
+    if out.measured is not None:
+        out.measured[:n] = measured[:n]
     if out.velocities is not None:
         out.velocities[:n] = velocities[:n]
     if out.sweep is not None:
@@ -143,9 +149,10 @@ def swept_capsules(endpoints: np.ndarray, radii: np.ndarray, velocities: np.ndar
     s of either segment, a + s(b − a) (+ (1 − s) d_a + s d_b when carried), lies within
     |(1 − s) d_a + s d_b|/2 ≤ sweep of the new axis at the same s. So the capsule as measured is
     always inside (a noisy velocity can only make the rows more cautious, never let the robot closer
-    to where the person was seen), its axis lies within ``sweep`` of the new one, and against any
-    robot capsule its h is at most the swept one's h + 2·sweep (what the intrusion stop uses). A
-    capsule with v = 0 is unchanged."""
+    to where the person was seen): against any robot capsule its h is at least the swept one's
+    (whether it is itself inside a margin, which the intrusion stop asks, is computed on it:
+    :meth:`~services.safety.barriers.pairs.CollisionGeometry.measured_h`). A capsule with v = 0 is
+    unchanged."""
     half = (0.5 * predict_s) * velocities
     sweep = np.linalg.norm(half, axis=2).max(axis=1)
     return endpoints + half, radii + sweep, sweep
@@ -265,8 +272,8 @@ class HumanMemory:
         """The barrier's external capsules after the last :meth:`update` (none yet: all slots invalid);
         ``use_velocity``: with the measured velocities of the currently valid slots; ``predict_s``
         τ > 0 (s): each slot valid in the newest message swept ahead by :func:`swept_capsules` for τ
-        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged). Lost
-        slots are ``held`` (None while none is). ``stale``: the newest message is older than
+        plus the message's :attr:`lateness` (a lost slot, whose velocity is 0, is unchanged), with
+        the endpoints as measured beside (``measured``). Lost slots are ``held`` (None while none is). ``stale``: the newest message is older than
         ``safety.human_timeout_s`` (or its source is gone): the capsules as last measured, neither
         velocity nor sweep (a velocity that old says nothing of where the person is now). The
         capsules carry :attr:`seen_speed` (inf when ``stale``: how they move now is unknown)."""
@@ -275,6 +282,7 @@ class HumanMemory:
         if predict_s > 0.0 and not stale and self._velocities is not None:
             endpoints, radii, sweep = swept_capsules(self._endpoints, self._radii, self._velocities,
                                                      predict_s + self.lateness)
-            return padded(n_external, endpoints, radii, self._valid, velocities, sweep, held, self.seen_speed)
+            return padded(n_external, endpoints, radii, self._valid, velocities, sweep, held, self.seen_speed,
+                          self._endpoints)
         return padded(n_external, self._endpoints, self._radii, self._valid, velocities, held=held,
                       moved=math.inf if stale else self.seen_speed)

@@ -16,9 +16,9 @@ b_i = −γ (h_i − T a_i) + a_i > 0: the person is inside the legs' margin, or
 will be within the look-ahead, i.e. h_i < a_i (T + 1/γ). Such a person is walking into a robot that
 cannot get out of the way, known only as they were a camera latency earlier. Then every
 robot–person row keeps only its floor, b_i ← min(b_i, 0) (never closer to any perceived capsule,
-no retreat demanded), and the target is rest (u_ref = 0): the robot brakes within the acceleration
-bound — starting as the person approaches, so that it has stopped by the time they arrive — and
-stands still until no such row fails. Retreating instead — the CBF's b_i = −γ h_i > 0, arms and
+no retreat demanded), and the target is rest (u_ref = 0): the robot brakes with the motors' full
+torque (below) — starting as the person approaches, so that it has stopped by the time they
+arrive — and stands still until no such row fails. Retreating instead — the CBF's b_i = −γ h_i > 0, arms and
 waist at their velocity bounds away from a person 60 ms old — swept other surfaces of the rotating
 links into the person: on the development set's two walk-throughs 543 of 586 robot-caused contact
 steps came while the person stood inside the pelvis or legs. Only soft rows change and only
@@ -38,12 +38,33 @@ toward the robot) that swung hands into true thighs at 1 m/s and leaned the tors
 forearm while the perceived pairs opened. The stop ends as soon as no person row is inside (h ≥ −1 mm) and imitation resumes under
 the ordinary rows. With the person swept ahead (``safety.human_predict_s``: each person capsule
 widened by ``sweep`` to enclose where its velocity carries it) a row counts as inside only when
-the capsule as measured is, for certain: its axis lies within ``sweep`` of the swept axis, so its
-h ≤ h_swept + 2·sweep, and the stop takes h_swept + 2·sweep < −1 mm. A person only expected to come
-in is kept out by the (swept) rows, not met by a robot standing still. Like the stop above it
+the capsule as measured is (:attr:`~services.safety.barriers.pairs.BarrierRows.h_measured`, its h
+computed on the capsule as the camera showed it, for the rows the swept one puts inside): a person
+only expected to come in is kept out by the (swept) rows, not met by a robot standing still. (The
+bound h_swept + 2·sweep this test once used read a forearm measured 6 cm inside as outside while
+it punched at metres per second, and the relaxed step retreated along the rows of a person a
+latency old, into where they were: README "A stop brakes with the motors' full torque, on the
+person as measured".) Like the stop above it
 only lowers soft rows' b, so the feasibility argument is unchanged. Measured (README "The
 intrusion stop"): the distance the robot closed into the true person 2.4–5× smaller in contact and
 1.7–3.5× within φ, at 11–30 % more contact steps, which are the person's.
+
+**A stop brakes with the motors' full torque.** A stop decided from the rows (either of the above)
+brakes, where its rows are feasible together, within twice the acceleration bound
+(:data:`~services.safety.filter.MOTOR_WIDENING`: ``safety.accel_max`` is about half each motor's
+torque, a bound kept while imitating so that the servos stay on the path the barriers were
+computed for), as the relaxed step already may for a person's floor: an arm moving at 3 rad/s stops
+in half the time and half the angle. The stop is there because the person is closer than the rows
+allow, and they are where the camera showed them a latency ago: every millisecond of braking is
+the arm moving on into where they may already be (traced on the test variants: a fist punching
+across a forearm still braking from 3 rad/s, a waist braking from 0.9 rad/s over 90 ms). Where the
+rows are infeasible together the relaxed solve tries its boxes from ×1, as any step (braking every
+relaxed step that hard left the servos trailing their command). Only the box widens, within what
+the motors give; the rows and their floors are those of the step, so the feasibility argument
+holds as it is. Measured (README "A stop brakes with the motors' full torque, on the person as
+measured"): on the test variants, with the measured intrusion above, robot-caused contact steps
+192 (158 commanded) → 155 (111), on the noisy camera 51 (27) → 44 (9), at 1–15 % more contacts
+(the person meeting a robot that stands still sooner).
 
 **Backing out from a person who stands inside.** The intrusion stop holds the robot while a person
 is inside a margin; a person who *stays* there (standing beside the robot with a hand hanging into
@@ -59,7 +80,7 @@ stand. So the stop backs out of them when
   held from memory, one seen in under half the frames) counts as moving, and
 - they are inside the margins of the robot's arms only (not the torso's, not the fixed body's).
 
-Then each pair row whose person capsule is inside for certain (``person_inside``, as the stop
+Then each pair row whose person capsule as measured is inside (``person_inside``, as the stop
 decides) keeps b_i ← min(b_i, c) instead of its floor, c = ``safety.intrusion_backout_mps``
 (0.05 m/s): the arm backs out along the pair's normal at up to c,
 the least motion that does so (the target is still rest), until no row is inside and imitation
@@ -86,7 +107,7 @@ of a protective stop decided from its rows, and once on the first step after one
 rest and commanded it (|u*| ≤ :data:`AT_REST`: the braking is over, the lag it left is not),
 once per run of steps aiming at rest. It is moved by at most [u_min, u_max]·Δt per joint and kept
 within the joint limits; the rows are evaluated there and the step runs from there, its u* still
-braking from u_prev within the acceleration bound. The command moves to where the robot already
+braking from u_prev within the stop's box. The command moves to where the robot already
 is, so the robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those steps
 (:attr:`~services.safety.filter.StepResult.settled` says which; the service's command carries
 it). Twice per run of steps aiming at rest at most, and never while imitating: a servo with a
@@ -123,8 +144,8 @@ def intruded(rows: BarrierRows) -> bool:
     """Whether a person capsule is inside a robot capsule's margin: some enabled robot–person
     row of the pair barrier's ``rows`` has h < −:data:`VIOLATION_TOL` (the intrusion stop). A row
     against a capsule swept ahead (``safety.human_predict_s``) counts only when the capsule as
-    measured is inside for certain, h + 2·sweep < −tol (:attr:`BarrierRows.sweep`): a person
-    expected to come closer is kept out by the rows, not met by a stop."""
+    measured is inside (:attr:`BarrierRows.h_measured`): a person expected to come closer is kept
+    out by the rows, not met by a stop."""
     if not rows.min_h_all < -VIOLATION_TOL:  # the smallest h of all enabled rows: none is inside
         return False
     return bool(rows.person_inside(-VIOLATION_TOL).any())
@@ -174,8 +195,8 @@ class ProtectiveStop:
         """A stop's rows, in place in ``b`` (M,), the stacked rows' bounds: every robot–person row
         (``soft`` (M,)) at its floor, b_i ← min(b_i, 0); if ``backs_out`` (not the stop at the
         fixed body), while the person stands still (:attr:`CollisionGeometry.person_speed` ≤
-        :data:`STILL_SPEED`) and every pair row whose person capsule is
-        inside for certain (:meth:`BarrierRows.person_inside`) is an arm capsule's, those rows keep
+        :data:`STILL_SPEED`) and every pair row whose person capsule as
+        measured is inside (:meth:`BarrierRows.person_inside`) is an arm capsule's, those rows keep
         b_i ← min(b_i, ``backout``) (m/s) instead ("Backing out from a person who stands inside").
         Returns whether they did (the step backs out)."""
         pair_b, kept = b[: self._arm_person_rows.shape[0]], None  # the pair rows come first

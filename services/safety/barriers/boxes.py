@@ -217,7 +217,7 @@ class BoxBarrier(CollisionGeometry):
             normal, self._zeros, self._zeros, h, J, self._witness_velocities, self._slot_first, self._slot_second,
             self._n_robot_slots, gamma, lookahead, A, b,
         )
-        return self._rows(A, b, h, distance)
+        return self._rows(A, b, h, distance, robot_endpoints, phi)
 
     def witness_points(self) -> np.ndarray:
         return self._witness.copy()

@@ -49,10 +49,11 @@ class CapsuleBarrier(CollisionGeometry):
         """Rows at the robot configuration whose FK gave ``robot_endpoints`` (7,2,3) and
         ``robot_jacobians`` (7,2,3,n); ``lookahead`` T (s) of the human velocity term."""
         self._endpoints[:N_ROBOT] = robot_endpoints
-        return self._rows(*segment_rows(
+        A, b, h, distance, min_h = segment_rows(
             self._endpoints, self._radii, robot_jacobians, self._velocities, self._first, self._second, N_ROBOT,
             gamma, phi, lookahead,
-        ))
+        )
+        return self._rows(A, b, h, distance, robot_endpoints, phi, min_h)
 
     def write_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,
                    lookahead: float, accel: np.ndarray | None, start: int, A: np.ndarray, b: np.ndarray,
@@ -62,8 +63,9 @@ class CapsuleBarrier(CollisionGeometry):
         distance = np.empty(self._first.shape[0])
         low, low_self = self._writer.write(endpoints, jacobians, gamma, phi, lookahead, start, A, b, soft, h, distance)
         stop = start + distance.shape[0]
+        h_measured = self.measured_h(endpoints, h[start:stop], phi) if low < 0.0 else None
         self.last_rows = BarrierRows(A[start:stop], b[start:stop], self._row_soft, h[start:stop], distance,
-                                     self._row_enabled, self._row_is_self, low, self._row_sweep)
+                                     self._row_enabled, self._row_is_self, low, h_measured)
         return low, low_self
 
     def witness_points(self) -> np.ndarray:

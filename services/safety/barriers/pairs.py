@@ -50,15 +50,15 @@ class BarrierRows(RowBlock):
     enabled: np.ndarray
     is_self: np.ndarray
     min_h_all: float = float("inf")  # min h over enabled rows (inf: none)
-    #: (m,) m per row: how much its person capsule was widened by the sweep ahead (``set_external``'s
-    #: ``sweep``; 0 for self rows and measured capsules): the capsule as measured lies within this of
-    #: the swept one's axis, so its own h is at most h + 2·sweep
-    sweep: np.ndarray | None = None
+    #: (m,) m per row: h against the person capsule *as measured*, not swept ahead, where a swept
+    #: person row is inside its margin (h < 0: :meth:`CollisionGeometry.measured_h`), h elsewhere
+    #: (at most the measured one there, which lies inside the swept capsule); None: h (nothing swept)
+    h_measured: np.ndarray | None = None
 
     def person_inside(self, below: float) -> np.ndarray:
-        """(m,) bool: the enabled robot–person rows whose person capsule *as measured* is inside for
-        certain, h + 2·sweep < ``below`` (m; h alone where nothing is swept)."""
-        h = self.h if self.sweep is None or not self.sweep.any() else self.h + 2.0 * self.sweep
+        """(m,) bool: the enabled robot–person rows whose person capsule *as measured* is inside,
+        h_measured < ``below`` (m, ≤ 0: a row with h ≥ 0 has its measured capsule outside too)."""
+        h = self.h if self.h_measured is None else self.h_measured
         return self.soft & self.enabled & (h < below)  # a disabled row's h is NaN: never below
 
     def min_h(self, self_rows: bool) -> float | None:
@@ -182,6 +182,8 @@ class CollisionGeometry(Barrier):
         self._endpoints, self._velocities = self._motion[0], self._motion[1]
         self._radii = np.zeros(n_stack)
         self._sweep = np.zeros(n_stack)  # per capsule: the widening of a swept external one (m)
+        self._swept = False  # some external capsule is swept (sweep > 0)
+        self._measured = np.zeros((pairs.n_external, 2, 3))  # the external capsules' endpoints as measured (m)
         self._valid = np.ones(n_stack, bool)
         self._radii[:N_ROBOT] = self.robot_radii
         #: added to every external capsule's radius at :meth:`set_external` (m; ``safety.human_margin``,
@@ -210,7 +212,7 @@ class CollisionGeometry(Barrier):
         self._row_soft = ~self._row_is_self
         self._row_all_enabled = np.ones(len(self._row_capsule), bool)
         self._row_enabled = self._row_all_enabled
-        self._row_sweep = self._sweep[self._row_capsule]
+        self._row_first = np.asarray(self.pairs.first)[self.row_pair]  # the robot capsule of each row
         #: (3, m) per row: enabled (updated in place by :meth:`set_external`), self-collision row, soft
         #: (the flags of :class:`SegmentRowWriter`)
         self._flags = np.stack([self._row_enabled, self._row_is_self, self._row_soft])
@@ -235,12 +237,14 @@ class CollisionGeometry(Barrier):
         sweep: np.ndarray | None = None,
         held: np.ndarray | None = None,
         seen_speed: float = math.inf,
+        measured: np.ndarray | None = None,
     ) -> None:
         """Set the E external capsules ((E,2,3) m, (E,) m, (E,) bool, (E,2,3) m/s; each radius plus
         :attr:`person_margin`); None: none present. ``sweep`` (E,) m: how much each was widened to
         enclose where its velocity carries it (:func:`~services.safety.human_memory.swept_capsules`;
-        None: 0), reported per row as :attr:`BarrierRows.sweep`; ``held`` (E,) bool: the capsules
-        remembered rather than measured, whose velocity is unknown (None: none); ``seen_speed`` (m/s):
+        None: 0), and ``measured`` (E,2,3) m, required with a sweep: their endpoints as measured,
+        before it (:meth:`measured_h`, the rows' :attr:`BarrierRows.h_measured`); ``held`` (E,)
+        bool: the capsules remembered rather than measured, whose velocity is unknown (None: none); ``seen_speed`` (m/s):
         how fast they were seen to move over the last states
         (:func:`~services.safety.human_memory.seen_speed`; inf: unknown). :attr:`person_speed` follows:
         ``seen_speed``, or inf while a present capsule is held. The measured ``velocities`` do not
@@ -248,6 +252,7 @@ class CollisionGeometry(Barrier):
         ext = slice(N_ROBOT, None)
         if endpoints is None:
             self._valid[ext] = False
+            self._swept = False
             self.person_speed = 0.0
         else:
             self._endpoints[ext] = endpoints
@@ -255,7 +260,11 @@ class CollisionGeometry(Barrier):
             self._valid[ext] = True if valid is None else valid
             self._velocities[ext] = 0.0 if velocities is None else velocities
             self._sweep[ext] = 0.0 if sweep is None else sweep
-            self._row_sweep = self._sweep[self._row_capsule]
+            self._swept = bool(self._sweep[ext].any())
+            if self._swept:
+                if measured is None:
+                    raise ValueError("swept external capsules need their endpoints as measured (measured=)")
+                self._measured[:] = measured
             present = self._valid[ext]
             held_present = held is not None and bool((present & held).any())
             self.person_speed = math.inf if held_present else seen_speed if present.any() else 0.0
@@ -280,10 +289,37 @@ class CollisionGeometry(Barrier):
         """(m, 2, 3) the closest points of every row's two colliders at the last evaluation: p_A on
         the robot's, p_B on the other (the constraint lines of the paper's Fig. 4)."""
 
-    def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray,
-              min_h: float | None = None) -> BarrierRows:
-        """Package the rows, disabling those of missing external capsules; ``min_h``: the smallest h
-        of all rows when the caller has it (None: computed here)."""
+    def measured_h(self, robot_endpoints: np.ndarray, h: np.ndarray, phi: float) -> np.ndarray | None:
+        """(m,) h of every row against its person capsule *as measured* where that matters, or None
+        when no person capsule is swept ahead (h is then measured already).
+
+        A swept capsule (:func:`~services.safety.human_memory.swept_capsules`) encloses the capsule
+        as measured, so against any robot capsule the measured one's h is at least the swept one's.
+        Rows with h ≥ 0 (or disabled, NaN) keep h, a bound below their measured h that already says
+        "outside". For a robot–person row inside its margin (h < 0) of a swept capsule, the exact
+        value on the capsules, d(robot capsule axis, measured axis) − (r_robot + r_person + φ), with
+        r_person the radius before the sweep (person margin included), at ``robot_endpoints``
+        (7, 2, 3) m, the robot pose the rows were evaluated at. Whether the person is inside a margin
+        (the protective stops, :mod:`services.safety.protective_stop`) is then decided on where the
+        camera showed them, not on the bound h + 2·sweep, which for a limb moving at metres per
+        second reads a capsule measured 6 cm inside as outside."""
+        if not self._swept:
+            return None
+        rows = np.flatnonzero(self._row_soft & (self._sweep[self._row_capsule] > 0.0) & (h < 0.0))
+        if not rows.size:
+            return h
+        robot, person = self._row_first[rows], self._row_capsule[rows]
+        a, b = robot_endpoints[robot], self._measured[person - N_ROBOT]
+        distance = segment_closest_points(a[:, 0], a[:, 1], b[:, 0], b[:, 1]).distance
+        out = h.copy()
+        out[rows] = distance - (self.robot_radii[robot] + self._radii[person] - self._sweep[person] + phi)
+        return out
+
+    def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray, robot_endpoints: np.ndarray,
+              phi: float, min_h: float | None = None) -> BarrierRows:
+        """Package the rows at ``robot_endpoints`` (7, 2, 3) and margin ``phi``, disabling those of
+        missing external capsules, with :meth:`measured_h`; ``min_h``: the smallest h of all rows
+        when the caller has it (None: computed here)."""
         if not self._all_enabled:
             enabled = self._valid[self._row_capsule]
             A[~enabled] = 0.0
@@ -293,8 +329,9 @@ class CollisionGeometry(Barrier):
         else:
             enabled = self._row_all_enabled
             min_h_all = min_h if min_h is not None else float(h.min()) if len(h) else float("inf")
+        h_measured = self.measured_h(robot_endpoints, h, phi) if min_h_all < 0.0 else None
         self.last_rows = BarrierRows(A=A, b=b, soft=self._row_soft, h=h, distance=distance, enabled=enabled,
-                                     is_self=self._row_is_self, min_h_all=min_h_all, sweep=self._row_sweep)
+                                     is_self=self._row_is_self, min_h_all=min_h_all, h_measured=h_measured)
         return self.last_rows
 
     def constraint_rows(self, q: np.ndarray, endpoints: np.ndarray, jacobians: np.ndarray, gamma: float, phi: float,

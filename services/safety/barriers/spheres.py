@@ -154,10 +154,11 @@ class SphereBarrier(CollisionGeometry):
         self._segments[:n_rs, 1] = centres
         flat = self._w_robot @ robot_jacobians.reshape(2 * N_ROBOT, 3 * self.n_joints)
         self._jacobians[:, 0] = flat.reshape(n_rs, 3, self.n_joints)
-        return self._rows(*segment_rows(
+        A, b, h, distance, min_h = segment_rows(
             self._segments, self._sphere_radii, self._jacobians, self._sphere_velocities, self._first, self._second,
             n_rs, gamma, phi, lookahead,
-        ))
+        )
+        return self._rows(A, b, h, distance, robot_endpoints, phi, min_h)
 
     def witness_points(self) -> np.ndarray:
         return swept_witness_points(self._segments, self._sphere_radii, self._first, self._second)
