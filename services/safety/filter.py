@@ -40,7 +40,8 @@ command. A protective stop decided from the rows brakes within the bound ×2 (th
 torque; :mod:`services.safety.protective_stop`) when its rows allow; its relaxed solve, where they
 do not, tries the boxes above from ×1 as any step (braking every relaxed step at full torque left
 the servos trailing: measured in the README). ``ddq`` = (u* − u_prev)/Δt is the command's
-acceleration (the executor's inertial feed-forward). After :meth:`SafetyFilter.reset` there is no u_prev and no bound for one step.
+acceleration (the executor's inertial feed-forward). After :meth:`SafetyFilter.reset` there is no
+u_prev and no bound for one step.
 
 **Prioritised relaxation.** When the rows are infeasible together (a person moving into the robot
 faster than it can retreat), every row i gets a slack σ_i ∈ [0, max(b_i, 0)] (A_i u + σ_i ≥ b_i,

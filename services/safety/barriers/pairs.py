@@ -244,8 +244,8 @@ class CollisionGeometry(Barrier):
         enclose where its velocity carries it (:func:`~services.safety.human_memory.swept_capsules`;
         None: 0), and ``measured`` (E,2,3) m, required with a sweep: their endpoints as measured,
         before it (:meth:`measured_h`, the rows' :attr:`BarrierRows.h_measured`); ``held`` (E,)
-        bool: the capsules remembered rather than measured, whose velocity is unknown (None: none); ``seen_speed`` (m/s):
-        how fast they were seen to move over the last states
+        bool: the capsules remembered rather than measured, whose velocity is unknown (None: none);
+        ``seen_speed`` (m/s): how fast they were seen to move over the last states
         (:func:`~services.safety.human_memory.seen_speed`; inf: unknown). :attr:`person_speed` follows:
         ``seen_speed``, or inf while a present capsule is held. The measured ``velocities`` do not
         count there: a camera's noise gives a still person's capsules velocities of metres per second."""
