@@ -160,6 +160,23 @@ def row_moves(A, i, tol):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def measured_rows(stack, radii, first, second, measured, h, phi, out):  # pragma: no cover - compiled
+    """``out`` (m,) ← ``h`` (m,), except each row i with ``measured[i]`` and h[i] < 0: the h of the
+    pair (first[i], second[i]) of ``stack`` (S, 2, 3) with ``radii`` (S,) and margin ``phi``
+    (:func:`pair_distances`). Returns how many rows were computed."""
+    scratch, normal = np.empty(4), np.empty((1, 3))
+    count = 0
+    for i in range(h.shape[0]):
+        out[i] = h[i]
+        if measured[i] and h[i] < 0.0:
+            pair_distances(stack, radii, first[i:i + 1], second[i:i + 1], phi, 0.0, scratch[0:1], scratch[1:2],
+                           scratch[2:3], scratch[3:4], normal)
+            out[i] = scratch[1]
+            count += 1
+    return count
+
+
+@njit(cache=True, nogil=True)
 def movable_mask(A, tol, out):  # pragma: no cover - compiled
     """out_i = row i of A moves (:func:`row_moves`)."""
     for i in range(A.shape[0]):

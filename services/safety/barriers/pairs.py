@@ -34,7 +34,7 @@ import numpy as np
 
 from services.safety.barriers.base import Barrier, RowBlock
 from services.safety.barriers.kernel import (
-    DISABLED_B, finish_segment_rows, masked_min, pair_rows, segment_pairs, write_segment_block,
+    DISABLED_B, finish_segment_rows, masked_min, measured_rows, pair_rows, segment_pairs, write_segment_block,
 )
 from services.safety.compiled import BoundKernel
 from services.safety.pairs import N_ROBOT, PairSet
@@ -183,7 +183,12 @@ class CollisionGeometry(Barrier):
         self._radii = np.zeros(n_stack)
         self._sweep = np.zeros(n_stack)  # per capsule: the widening of a swept external one (m)
         self._swept = False  # some external capsule is swept (sweep > 0)
-        self._measured = np.zeros((pairs.n_external, 2, 3))  # the external capsules' endpoints as measured (m)
+        #: the stack as measured (:meth:`measured_h`): the robot's capsules, then the external ones
+        #: before their sweep (endpoints m, radii m: the person margin kept, the widening not)
+        self._measured = np.zeros((n_stack, 2, 3))
+        self._measured_radii = np.zeros(n_stack)
+        self._measured_radii[:N_ROBOT] = self.robot_radii
+        self._measured_rows = BoundKernel(measured_rows)
         self._valid = np.ones(n_stack, bool)
         self._radii[:N_ROBOT] = self.robot_radii
         #: added to every external capsule's radius at :meth:`set_external` (m; ``safety.human_margin``,
@@ -199,6 +204,10 @@ class CollisionGeometry(Barrier):
         self._row_is_self = pairs.is_self
         self._row_capsule = np.asarray(pairs.second)  # the capsule whose validity enables the row
         self._row_constants()
+        # compiled now for its argument types (no row computed), not in the control tick that first
+        # finds a swept person inside a margin
+        self._measured_rows.call(self._measured, self._measured_radii, self._row_first, self._row_second,
+                                 self._row_swept, np.zeros(0), 0.0, np.empty(0))
 
     def _set_rows(self, row_pair: np.ndarray) -> None:
         """Declare the backend's rows: ``row_pair`` (m,) monitored pair of each row."""
@@ -212,7 +221,9 @@ class CollisionGeometry(Barrier):
         self._row_soft = ~self._row_is_self
         self._row_all_enabled = np.ones(len(self._row_capsule), bool)
         self._row_enabled = self._row_all_enabled
-        self._row_first = np.asarray(self.pairs.first)[self.row_pair]  # the robot capsule of each row
+        self._row_first = np.ascontiguousarray(np.asarray(self.pairs.first)[self.row_pair], dtype=np.int64)
+        self._row_second = np.ascontiguousarray(self._row_capsule, dtype=np.int64)  # the same, for the kernel
+        self._row_swept = np.zeros(len(self._row_capsule), bool)  # robot–person rows of a swept capsule
         #: (3, m) per row: enabled (updated in place by :meth:`set_external`), self-collision row, soft
         #: (the flags of :class:`SegmentRowWriter`)
         self._flags = np.stack([self._row_enabled, self._row_is_self, self._row_soft])
@@ -264,7 +275,10 @@ class CollisionGeometry(Barrier):
             if self._swept:
                 if measured is None:
                     raise ValueError("swept external capsules need their endpoints as measured (measured=)")
-                self._measured[:] = measured
+                self._measured[ext] = measured
+                np.subtract(self._radii[ext], self._sweep[ext], out=self._measured_radii[ext])
+                np.greater(self._sweep[self._row_capsule], 0.0, out=self._row_swept)
+                self._row_swept &= self._row_soft
             present = self._valid[ext]
             held_present = held is not None and bool((present & held).any())
             self.person_speed = math.inf if held_present else seen_speed if present.any() else 0.0
@@ -305,14 +319,10 @@ class CollisionGeometry(Barrier):
         second reads a capsule measured 6 cm inside as outside."""
         if not self._swept:
             return None
-        rows = np.flatnonzero(self._row_soft & (self._sweep[self._row_capsule] > 0.0) & (h < 0.0))
-        if not rows.size:
-            return h
-        robot, person = self._row_first[rows], self._row_capsule[rows]
-        a, b = robot_endpoints[robot], self._measured[person - N_ROBOT]
-        distance = segment_closest_points(a[:, 0], a[:, 1], b[:, 0], b[:, 1]).distance
-        out = h.copy()
-        out[rows] = distance - (self.robot_radii[robot] + self._radii[person] - self._sweep[person] + phi)
+        self._measured[:N_ROBOT] = robot_endpoints
+        out = np.empty(h.shape[0])
+        self._measured_rows.call(self._measured, self._measured_radii, self._row_first, self._row_second,
+                                 self._row_swept, h, float(phi), out)
         return out
 
     def _rows(self, A: np.ndarray, b: np.ndarray, h: np.ndarray, distance: np.ndarray, robot_endpoints: np.ndarray,
