@@ -55,6 +55,7 @@ def test_paper_scenarios_violate_without_and_are_safe_with_the_cbf(scenario: str
     assert cbf["nan_count"] == 0 and nominal["nan_count"] == 0
     assert cbf["hold_steps"] == 0
     assert nominal["protective_stop_steps"] == nominal["backing_out_steps"] == 0  # no filter, no stop
+    assert cbf["person_lost_steps"] == nominal["person_lost_steps"] == 0  # seen throughout
     assert metrics["input"]["free_steps"] < metrics["input"]["control_steps"]
     assert metrics["input"]["robot_model"] == ("g1.xml" if model == "real_g1" else "default")
 
@@ -257,7 +258,8 @@ def test_suite_over_the_development_clips_writes_one_row_per_clip_and_placement(
     walk = rows[("bandai1_slash_sword", "facing")]["cbf"]  # a person walking through the robot: it stops
     step_s = 1.0 / load_config(environ={}).safety.rate_hz
     assert walk["protective_stop_steps"] > 0
-    assert f"| {walk['protective_stop_steps'] * step_s:.2f} / {walk['backing_out_steps'] * step_s:.2f} |" in table
+    assert f"| {walk['protective_stop_steps'] * step_s:.2f} / {walk['backing_out_steps'] * step_s:.2f} / " \
+        f"{walk['person_lost_steps'] * step_s:.2f} |" in table
     assert summary["goals"] == goal_report(summary["runs"])  # the evaluated runs, the broken one left out
     assert all(g["met"] + g["failed"] + g["not_judged"] == 2 * len(clips) for g in summary["goals"])
     assert "\n".join(goals_markdown(summary["goals"])) in table

@@ -99,18 +99,58 @@ def test_noise_and_dropout_reproduce_with_a_seed_and_noise_runs_along_the_viewin
     assert not np.array_equal(keypoints[0], keypoints[2])
     camera = np.asarray(conf.perception.camera.extrinsics.position)
     rng = np.random.default_rng(7)
-    dropped = np.mean([np.isnan(corrupt(f, camera, model, rng).xyz).any(axis=1).mean() for f in source.frames])
+    dropped = np.mean([np.isnan(corrupt(f, camera, model, rng)[0].xyz).any(axis=1).mean() for f in source.frames])
     assert 0.15 < dropped < 0.25, dropped  # each keypoint missing with probability 0.2
     assert first.counters.missing_points < dropped * len(source.frames) * len(KEYPOINT_NAMES)  # the hold bridges
 
     frame = source.frames[5]
-    noisy = corrupt(frame, camera, CameraModel(depth_noise_m=0.05, seed=1), np.random.default_rng(1))
+    noisy, _ = corrupt(frame, camera, CameraModel(depth_noise_m=0.05, seed=1), np.random.default_rng(1))
     shift = noisy.xyz - frame.xyz
     rays = frame.xyz - camera
     centre = frame.xyz.mean(axis=0) - camera
     normals = np.cross(rays, centre)  # the shift lies in the plane of the own ray and the centre's ray
     assert np.abs(np.einsum("ij,ij->i", shift, normals / np.linalg.norm(normals, axis=1, keepdims=True))).max() < 1e-9
     assert np.linalg.norm(shift, axis=1).min() > 0
+
+
+def _runs(hidden: np.ndarray) -> np.ndarray:
+    """The lengths of the runs of True in each column of ``hidden`` (F, K) bool."""
+    padded = np.zeros((hidden.shape[0] + 2, hidden.shape[1]), np.int8)
+    padded[1:-1] = hidden
+    edges = np.diff(padded, axis=0)
+    return np.concatenate([np.flatnonzero(edges[:, k] == -1) - np.flatnonzero(edges[:, k] == 1)
+                           for k in range(hidden.shape[1])])
+
+
+def test_keypoints_hidden_in_runs_keep_the_dropout_share_and_make_capsules_lost(tmp_path: Path) -> None:
+    """--dropout-frames L: each keypoint hidden a share P of the frames in runs of L frames on average
+    (a Markov chain; independently per frame without it, runs of 1/(1 − P)); runs longer than the
+    point filter's hold make capsules lost, and the robot stands (``person_lost_steps``), where the
+    same share hidden independently is bridged by the hold."""
+    rng = np.random.default_rng(11)
+    for model, mean_run in ((CameraModel(dropout=0.1, dropout_frames=12.0), 12.0),
+                            (CameraModel(dropout=0.1), 1.0 / 0.9), (CameraModel(dropout=0.3, dropout_frames=2.0), 2.0)):
+        hidden = np.zeros((40000, len(KEYPOINT_NAMES)), bool)
+        for f in range(1, len(hidden)):
+            hidden[f] = model.hidden(rng.random(len(KEYPOINT_NAMES)), hidden[f - 1])
+        assert abs(hidden.mean() - model.dropout) < 0.1 * model.dropout, (model, hidden.mean())
+        assert abs(_runs(hidden).mean() - mean_run) < 0.1 * mean_run, (model, _runs(hidden).mean())
+    assert CameraModel(dropout=0.1, dropout_frames=12.0).settings()["dropout_frames"] == 12.0
+
+    path = write_recording(tmp_path / "raise.npz", raise_recording(6.0))
+    conf = evaluation_config(str(path), None, "recorded", None)
+    source = open_input(conf)
+    kinematics = RobotKinematics(configured_robot_spec(conf))
+    person = true_person_of(conf, source, kinematics)
+    lost = {}
+    for frames in (0.0, 20.0):
+        model = CameraModel(latency_s=0.06, dropout=0.1, dropout_frames=frames, seed=2)
+        track = perceive(conf, source, model)
+        hidden_frames = np.mean([not s.capsule_valid.all() for s in track.states])
+        episode = run_episode(conf, track, person, enforce=True, kinematics=kinematics)
+        lost[frames] = (hidden_frames, int(episode.person_lost.sum()))
+    assert lost[0.0] == (0.0, 0), lost  # hidden a frame or two at a time: held by the point filter
+    assert lost[20.0][0] > 0.1 and lost[20.0][1] > 0, lost  # hidden for ⅔ s on average: capsules lost, robot stands
 
 
 def test_a_late_camera_delays_frames_now_and_then_in_order_and_changes_nothing_else(tmp_path: Path) -> None:
@@ -141,7 +181,7 @@ def test_a_late_camera_delays_frames_now_and_then_in_order_and_changes_nothing_e
 
 def test_camera_model_refuses_out_of_range_values() -> None:
     for bad in ({"latency_s": -0.01}, {"depth_noise_m": -1.0}, {"dropout": 1.0}, {"jitter_s": -0.001},
-                {"jitter_s": 1.5}):
+                {"jitter_s": 1.5}, {"dropout": 0.1, "dropout_frames": 0.5}, {"dropout": 0.9, "dropout_frames": 5.0}):
         with pytest.raises(ValueError):
             CameraModel(**bad)
 

@@ -63,7 +63,10 @@ class Episode:
     of the perceived state in force (−1: none yet); ``settled`` (N,) the step first brought q_cbf
     to the robot's joints (a stop: the step then ran from q_cbf[k] − Δt u*[k], not from
     q_cbf[k−1]); ``stopped`` (N,) the step was a protective stop (:attr:`StepResult.protective_stop`),
-    ``backing_out`` (N,) one that backed an arm out of a still person; ``pairs`` names the columns of ``h``.
+    ``backing_out`` (N,) one that backed an arm out of a still person; ``person_lost`` (N,) the step
+    aimed at q_cbf instead of imitating because the person's state was stale
+    (``safety.human_timeout_s``) or a capsule was lost (``safety.lost_human_hold_s``, as the safety
+    service does); ``pairs`` names the columns of ``h``.
 
     The world: ``q_sim``/``dq_sim`` (N, 8) simulated joints after the step; ``qpos`` (N, nq) the
     whole MuJoCo pose; ``robot_capsules`` (N, 7, 2, 3) the CBF capsules at q_sim;
@@ -99,6 +102,7 @@ class Episode:
     settled: np.ndarray
     stopped: np.ndarray
     backing_out: np.ndarray
+    person_lost: np.ndarray
     true_clearance: np.ndarray
     true_rate: np.ndarray
     true_rate_commanded: np.ndarray
@@ -140,7 +144,7 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
         dq_sim=np.empty((n, j)), qpos=np.empty((n, nq)), robot_capsules=np.empty((n, 7, 2, 3)),
         h=np.empty((n, m)), active=np.zeros((n, m), bool), binding=np.zeros(n, bool), mode=np.empty(n, np.int8),
         qp_ms=np.empty(n), human=np.full(n, -1, np.int64), settled=np.zeros(n, bool), stopped=np.zeros(n, bool),
-        backing_out=np.zeros(n, bool),
+        backing_out=np.zeros(n, bool), person_lost=np.zeros(n, bool),
         true_clearance=np.empty((n, mt)), true_rate=np.empty((n, mt)), true_rate_commanded=np.empty((n, mt)),
         true_contact=np.zeros(n, bool), true_depth=np.zeros(n), robot_caused=np.zeros(n, bool),
         robot_caused_commanded=np.zeros(n, bool), closing_speed=np.zeros(n), fixed_contact=np.zeros(n, bool),
@@ -227,7 +231,8 @@ def run_episode(
                 applied, stale = newest, now_stale
         q_nom, dq_nom = nominal.at(t)
         h_seen = None if seen is None else seen.h(safety.filter.q_cbf)
-        if stale or memory.lost:
+        ep.person_lost[k] = stale or memory.lost
+        if ep.person_lost[k]:
             result = safety.filter.step(safety.filter.q_cbf.copy(), dt, q_robot=q_robot)
         else:
             result = safety.filter.step(q_nom, dt, dq_nom if feedforward else None, q_robot)

@@ -57,7 +57,7 @@ def summary_table(metrics: dict[str, Any]) -> str:
 def camera_model(args: argparse.Namespace) -> CameraModel:
     """The perceived person's corruption from the command line (ValueError out of range)."""
     return CameraModel(latency_s=args.latency_ms / 1e3, depth_noise_m=args.depth_noise_m, dropout=args.dropout,
-                       seed=args.seed, jitter_s=args.latency_jitter_ms / 1e3)
+                       seed=args.seed, jitter_s=args.latency_jitter_ms / 1e3, dropout_frames=args.dropout_frames)
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
@@ -70,8 +70,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         "The TRUE person is the recording as recorded (no filter), interpolated to the control rate: MuJoCo's "
         "person follows it and every true_* metric is measured against it, at the simulated joints, on every "
         "robot surface. The PERCEIVED person is what the safety layer gets: the same skeleton delayed by "
-        "--latency-ms (--latency-jitter-ms: late now and then), optionally noisy (--depth-noise-m, --dropout, "
-        "--seed), then filtered as the perception service does.\n\n"
+        "--latency-ms (--latency-jitter-ms: late now and then), optionally noisy (--depth-noise-m, --dropout "
+        "with --dropout-frames for keypoints hidden in runs, --seed), then filtered as the perception service does.\n\n"
         "Writes metrics.json, contacts.json, joints.png, barriers.png and snapshot.png into --out; with --suite "
         "one such folder per clip and placement plus summary.json, summary.md and summary.png; summary.md ends "
         "with the goals: how many runs meet each safety and imitation goal, which fail, and which of those "
@@ -106,6 +106,11 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
                         "part (σ/2); default 0")
     parser.add_argument("--dropout", type=float, default=0.0, metavar="P",
                         help="each keypoint missing in a frame with probability P (default 0)")
+    parser.add_argument("--dropout-frames", type=float, default=0.0, metavar="L",
+                        help="with --dropout: each keypoint is hidden in runs of L frames on average (an arm "
+                        "behind the body, a limb out of view), still a fraction P of the frames; runs longer "
+                        "than the point filter's hold make a capsule lost, which stops the imitation "
+                        "(safety.lost_human_hold_s). Default 0: independent from frame to frame")
     parser.add_argument("--seed", type=int, default=0, help="random seed of noise, dropout and jitter (default 0)")
     parser.add_argument("--seconds", type=float, metavar="S",
                         help="evaluate this long (default: the whole recording / one period of the scenario; "

@@ -25,6 +25,10 @@
   aiming at rest: a person inside a margin, ``safety.on_intrusion``) / of those, the steps that
   backed an arm out of a person standing still inside it (``safety.intrusion_backout_mps``): how
   long the robot stood instead of imitating;
+- ``person_lost_steps``: steps at which the robot stood instead of imitating because the person's
+  state was stale (``safety.human_timeout_s``) or one of their capsules was lost (a body part
+  perception stopped seeing, held for ``safety.lost_human_hold_s``): what a camera that loses
+  keypoints costs the imitation (``--dropout`` with ``--dropout-frames``);
 - ``nan_count``: non-finite values in q_cbf, u* and the simulated joints (must be 0).
 
 Those are the filter's own view (q_cbf against the perceived person: delayed, filtered, held).
@@ -82,7 +86,7 @@ from shared.messages import SafetyMode
 RUN_KEYS: tuple[str, ...] = (
     "min_h_self", "min_h_human", "frames_h_negative", "contacts_robot_robot", "contacts_robot_human",
     "rms_tracking", "rms_tracking_free", "max_joint_speed", "qp_ms_p50", "qp_ms_p99",
-    "relaxed_steps", "hold_steps", "protective_stop_steps", "backing_out_steps", "nan_count",
+    "relaxed_steps", "hold_steps", "protective_stop_steps", "backing_out_steps", "person_lost_steps", "nan_count",
     "true_min_h_self", "true_min_clearance_human", "true_contacts_robot_human", "true_contacts_fixed_bodies",
     "true_max_depth_human",
     "robot_caused_contact_steps", "person_caused_contact_steps", "robot_approach_steps",
@@ -175,6 +179,7 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         "hold_steps": int(modes[MODES.index(SafetyMode.HOLD)]),
         "protective_stop_steps": int(np.count_nonzero(ep.stopped)),
         "backing_out_steps": int(np.count_nonzero(ep.backing_out)),
+        "person_lost_steps": int(np.count_nonzero(ep.person_lost)),
         "nan_count": nonfinite,
         **truth_metrics(ep, phi),
         "fidelity": fidelity(person.q_true, ep.q_sim, free,

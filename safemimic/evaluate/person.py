@@ -17,7 +17,15 @@ filter → angles + capsules) exactly as the perception service does, and become
   part ε_k ~ N(0, (σ/2)²) along keypoint k's own ray (the camera at
   ``perception.camera.extrinsics.position``). A monocular or stereo camera is least certain
   along its rays; most of that error is shared by the whole body (the person's scale/distance);
-- dropout (``dropout`` = P): each keypoint is missing in a frame with probability P;
+- dropout (``dropout`` = P): each keypoint is missing in a frame with probability P, independently
+  from frame to frame, or, with ``dropout_frames`` = L > 0, in runs of L frames on average (an arm
+  behind the body, a hand out of view, a detector's confidence flickering below its threshold):
+  each keypoint is a two-state Markov chain, hidden → seen with probability 1/L and seen → hidden
+  with probability s = P / (L (1 − P)), whose stationary share of hidden frames is
+  π = sL / (1 + sL) = P and whose hidden runs are geometric with mean L. Every keypoint starts seen.
+  Runs longer than the point filter's ``perception.point_filter.hold_s`` invalidate the capsule:
+  the safety layer then remembers it as *lost* (``safety.lost_human_hold_s``), which independent
+  dropout of a few percent almost never does;
 - ``seed``: the random stream (numpy's default generator): the same seed, the same corruption.
 
 With ``latency_s = 0`` and no noise the perceived person is the pipeline's plain output.
@@ -50,7 +58,8 @@ DEFAULT_LATENCY_S = 0.060
 @dataclass(frozen=True)
 class CameraModel:
     """How the perceived person differs from the true one: delay (s), depth noise σ (m), dropout
-    probability, random seed, and ``jitter_s``: the mean (s) of an extra delay per frame,
+    probability and ``dropout_frames`` the mean length of a keypoint's hidden runs (frames; 0:
+    independent per frame; module docstring), random seed, and ``jitter_s``: the mean (s) of an extra delay per frame,
     exponentially distributed (a camera late now and then: inference or transport stalling; most
     frames a little late, a few by several times the mean), each frame still arriving after the
     one before it (a publisher's order is kept). Raises ValueError for values outside their ranges."""
@@ -60,6 +69,7 @@ class CameraModel:
     dropout: float = 0.0
     seed: int = 0
     jitter_s: float = 0.0
+    dropout_frames: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.latency_s <= 2.0:
@@ -70,11 +80,27 @@ class CameraModel:
             raise ValueError(f"depth noise must be in [0, 1] m, got {self.depth_noise_m:g}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout:g}")
+        if self.dropout_frames != 0.0 and not 1.0 <= self.dropout_frames <= 1e4:
+            raise ValueError(f"dropout runs must average 1 to 10000 frames (0: independent), got {self.dropout_frames:g}")
+        if self.dropout_frames and self.dropout > self.dropout_frames * (1.0 - self.dropout):
+            raise ValueError(f"a keypoint hidden {100 * self.dropout:g} % of the frames needs runs of at least "
+                             f"{self.dropout / (1.0 - self.dropout):g} frames on average, got {self.dropout_frames:g}")
 
     def settings(self) -> dict[str, float | int]:
         """The ``input`` keys of metrics.json."""
         return {"latency_ms": round(1e3 * self.latency_s, 6), "depth_noise_m": self.depth_noise_m,
-                "dropout": self.dropout, "seed": self.seed, "latency_jitter_ms": round(1e3 * self.jitter_s, 6)}
+                "dropout": self.dropout, "dropout_frames": self.dropout_frames, "seed": self.seed,
+                "latency_jitter_ms": round(1e3 * self.jitter_s, 6)}
+
+    def hidden(self, draws: np.ndarray, hidden_before: np.ndarray) -> np.ndarray:
+        """(K,) bool, the keypoints hidden in a frame from K uniform ``draws`` in [0, 1) and
+        ``hidden_before`` (K,) bool, those hidden in the frame before (module docstring): draw < P
+        independently; in runs, draw < 1 − 1/L where hidden before, draw < P / (L (1 − P)) where seen."""
+        if not self.dropout_frames:
+            return draws < self.dropout
+        stay = 1.0 - 1.0 / self.dropout_frames
+        start = self.dropout / (self.dropout_frames * (1.0 - self.dropout))
+        return draws < np.where(hidden_before, stay, start)
 
     def arrivals(self, frame_times: np.ndarray) -> np.ndarray:
         """(F,) when each frame's state becomes available (s, on ``frame_times``' clock): its frame
@@ -130,12 +156,15 @@ class TruePerson:
     robot_at_target: np.ndarray
 
 
-def corrupt(frame: SkeletonFrame, camera_position: np.ndarray, model: CameraModel,
-            rng: np.random.Generator) -> SkeletonFrame:
-    """``frame`` with the depth noise and dropout of ``model`` (module docstring); draws the same
-    number of random values whatever the frame holds, so a seed fixes the whole stream."""
+def corrupt(frame: SkeletonFrame, camera_position: np.ndarray, model: CameraModel, rng: np.random.Generator,
+            hidden_before: np.ndarray | None = None) -> tuple[SkeletonFrame, np.ndarray]:
+    """``frame`` with the depth noise and dropout of ``model`` (module docstring), and (K,) bool the
+    keypoints it hid, to pass as ``hidden_before`` with the next frame (None: none hidden before);
+    draws the same number of random values whatever the frame holds, so a seed fixes the whole
+    stream."""
     common, per_point = rng.normal(0.0, 1.0), rng.normal(0.0, 1.0, len(frame.xyz))
-    dropped = rng.random(len(frame.xyz)) < model.dropout
+    before = np.zeros(len(frame.xyz), bool) if hidden_before is None else hidden_before
+    dropped = model.hidden(rng.random(len(frame.xyz)), before)
     xyz, conf = frame.xyz.copy(), frame.conf.copy()
     sigma = model.depth_noise_m
     present = np.isfinite(xyz).all(axis=1)
@@ -146,7 +175,7 @@ def corrupt(frame: SkeletonFrame, camera_position: np.ndarray, model: CameraMode
         centre /= max(float(np.linalg.norm(centre)), 1e-9)
         xyz += sigma * common * centre + (0.5 * sigma * per_point)[:, None] * rays
     xyz[dropped], conf[dropped] = np.nan, 0.0
-    return SkeletonFrame(t=frame.t, xyz=xyz, conf=conf, captured=frame.captured, discontinuity=frame.discontinuity)
+    return SkeletonFrame(t=frame.t, xyz=xyz, conf=conf, captured=frame.captured, discontinuity=frame.discontinuity), dropped
 
 
 def perceive(conf: StackConfig, source: EvaluationInput, model: CameraModel = CameraModel(latency_s=0.0)) -> HumanTrack:
@@ -160,9 +189,9 @@ def perceive(conf: StackConfig, source: EvaluationInput, model: CameraModel = Ca
     noisy = model.depth_noise_m > 0.0 or model.dropout > 0.0
     t0 = source.frames[0].t
     arrivals = model.arrivals(np.array([frame.t - t0 for frame in source.frames]))
-    states = []
+    states, hidden = [], None
     for frame, arrival in zip(source.frames, arrivals.tolist(), strict=True):
-        seen = corrupt(frame, camera, model, rng) if noisy else frame
+        seen, hidden = corrupt(frame, camera, model, rng, hidden) if noisy else (frame, None)
         states.append(pipeline.step(seen).to_message(stamp=arrival, capture_stamp=frame.t - t0))
     return HumanTrack(t=np.array([s.stamp for s in states]), states=tuple(states), counters=pipeline.counters)
 

@@ -45,9 +45,10 @@ COLUMNS: tuple[tuple[str, str], ...] = (
      "trailing or settling behind their command)"),
     ("approaches / commanded (CBF)", "CBF run: steps at which the robot closed > 1 mm/s a pair whose true clearance "
      "is below φ / of those, the ones the command u* closed too; in brackets, how far it closed in over them (mm)"),
-    ("stopped (s): stop / backing out", "CBF run: how long the robot aimed at rest instead of imitating because a "
-     "person was inside a margin (the protective stop, safety.on_intrusion) / of that, backing an arm out of a person "
-     "standing still inside it"),
+    ("stopped (s): stop / backing out / person lost", "CBF run: how long the robot aimed at rest instead of imitating "
+     "because a person was inside a margin (the protective stop, safety.on_intrusion) / of that, backing an arm out of "
+     "a person standing still inside it / how long it stood because a capsule of the person was lost (a body part "
+     "perception stopped seeing, safety.lost_human_hold_s) or their state was stale"),
     ("min true clearance (mm)", "CBF run: smallest robot–person capsule surface distance at the simulated joints"),
     ("min self h (mm)", "CBF run: smallest self-pair barrier at the simulated joints (true_min_h_self)"),
     ("lag (ms) (target / command / servos)", "CBF run: median delay of the simulated joints behind the true person's "
@@ -98,9 +99,17 @@ def _mm(value: float | None) -> str:
 
 
 def _stopped(cbf: dict[str, Any], given: dict[str, Any]) -> str:
-    """The stopped column: protective stop / backing-out steps of a run, in seconds."""
+    """The stopped column: protective stop / backing-out / person-lost steps of a run, in seconds."""
     step_s = given["seconds"] / max(given["control_steps"], 1)
-    return f"{cbf['protective_stop_steps'] * step_s:.2f} / {cbf['backing_out_steps'] * step_s:.2f}"
+    return " / ".join(f"{cbf[key] * step_s:.2f}" for key in ("protective_stop_steps", "backing_out_steps",
+                                                              "person_lost_steps"))
+
+
+def _runs(settings: dict[str, Any]) -> str:
+    """How the dropout's keypoints are hidden, after its probability: "" (independently per frame) or
+    " in runs of L frames"."""
+    frames = settings.get("dropout_frames", 0.0)
+    return f" in runs of {frames:g} frames" if frames else ""
 
 
 def _num(value: float | None, fmt: str) -> str:
@@ -114,7 +123,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     lines = [
         "# Evaluation suite", "",
         f"{len(summary['runs'])} runs; camera latency {latency_text(s)}, depth noise {s['depth_noise_m']:g} m, "
-        f"dropout {s['dropout']:g}, seed {s['seed']}; robot model {s['robot_model'] or 'default'}.", "",
+        f"dropout {s['dropout']:g}{_runs(s)}, seed {s['seed']}; robot model {s['robot_model'] or 'default'}.", "",
         "| clip | placement | " + " | ".join(h for h, _ in COLUMNS) + " |",
         "|---|---|" + "---|" * len(COLUMNS),
     ]
