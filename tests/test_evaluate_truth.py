@@ -181,7 +181,8 @@ def test_a_late_camera_delays_frames_now_and_then_in_order_and_changes_nothing_e
 
 def test_camera_model_refuses_out_of_range_values() -> None:
     for bad in ({"latency_s": -0.01}, {"depth_noise_m": -1.0}, {"dropout": 1.0}, {"jitter_s": -0.001},
-                {"jitter_s": 1.5}, {"dropout": 0.1, "dropout_frames": 0.5}, {"dropout": 0.9, "dropout_frames": 5.0}):
+                {"jitter_s": 1.5}, {"dropout": 0.1, "dropout_frames": 0.5}, {"dropout": 0.9, "dropout_frames": 5.0},
+                {"dropout_frames": 15.0}):
         with pytest.raises(ValueError):
             CameraModel(**bad)
 

@@ -82,6 +82,8 @@ class CameraModel:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout:g}")
         if self.dropout_frames != 0.0 and not 1.0 <= self.dropout_frames <= 1e4:
             raise ValueError(f"dropout runs must average 1 to 10000 frames (0: independent), got {self.dropout_frames:g}")
+        if self.dropout_frames and not self.dropout:
+            raise ValueError("dropout runs need the share of frames hidden: a dropout P > 0")
         if self.dropout_frames and self.dropout > self.dropout_frames * (1.0 - self.dropout):
             raise ValueError(f"a keypoint hidden {100 * self.dropout:g} % of the frames needs runs of at least "
                              f"{self.dropout / (1.0 - self.dropout):g} frames on average, got {self.dropout_frames:g}")
