@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.safety.assembly import build_pipeline
-from services.safety.human_memory import FrameLateness, HumanMemory, external_capsules, seen_speed
+from services.safety.human_memory import FrameLateness, HumanMemory, external_capsules
 from services.safety.protective_stop import STILL_SPEED
 from shared.config import load_config
 from shared.messages import HumanState
@@ -195,7 +195,7 @@ def seen_after(states: list[HumanState], memory: HumanMemory | None = None) -> f
 
 
 def test_how_fast_the_capsules_were_seen_to_move_over_the_last_second() -> None:
-    """``seen_speed`` over the last STILL_WINDOW_S of frames: the speed of a steady motion, unknown
+    """``seen_speed`` over the last second of frames (SeenMotion): the speed of a steady motion, unknown
     (inf) until the frames span STILL_SEEN_FOR_S, for a capsule seen in under half of them and after
     the stream starts over; a still person under a camera's noise is still although their endpoints jump
     by centimetres from frame to frame; an arm punching out and back within the window is not."""
@@ -204,14 +204,14 @@ def test_how_fast_the_capsules_were_seen_to_move_over_the_last_second() -> None:
     assert seen_after(walking[:15], memory) == np.inf  # 0.47 s seen: not yet known
     assert seen_after(walking[15:16], memory) == pytest.approx(0.9, rel=0.07)
     assert seen_after(walking[16:], memory) == pytest.approx(0.9, rel=0.04)
-    assert len(memory._window) == 31  # noqa: SLF001 (a second of frames, and the one before it)
+    assert memory._seen.frames == 31  # noqa: SLF001 (a second of frames, and the one before it)
     assert memory.capsules(7, True).seen_speed == memory.seen_speed
     assert memory.capsules(7, True, stale=True).seen_speed == np.inf  # stale: how they move now is unknown
     before = memory.seen_speed
     memory.update(walking[-1], 2.0, HOLD_S)  # the same message again: unchanged
     assert memory.seen_speed == before
     assert seen_after(frames(lambda t: 0.9 * t, t0=1.0, n=31), memory) == pytest.approx(0.9, rel=0.04)
-    assert len(memory._window) == 31  # noqa: SLF001
+    assert memory._seen.frames == 31  # noqa: SLF001
     assert seen_after(frames(lambda t: 0.9 * t, t0=0.5, n=2), memory) == np.inf  # back in time: started over
 
     rng = np.random.default_rng(3)
@@ -235,9 +235,9 @@ def test_how_fast_the_capsules_were_seen_to_move_over_the_last_second() -> None:
     half_seen = [message.model_copy(update={"capsule_valid": appeared[k].capsule_valid})
                  for k, message in enumerate(walking[:31])]
     assert seen_after(half_seen) == pytest.approx(0.9, rel=0.07)  # over the half second it was seen
-    nobody = np.zeros((3, 7), bool)
-    assert seen_speed(np.arange(3.0), np.zeros((3, 7, 2, 3)), nobody) == 0.0
-    assert seen_speed(np.zeros(3), np.zeros((3, 7, 2, 3)), ~nobody) == np.inf  # no time between them
+    nobody = frames(lambda t: 0.0)
+    nobody[-1] = nobody[-1].model_copy(update={"capsule_valid": np.zeros(7, bool)})
+    assert seen_after(nobody) == 0.0
     assert external_capsules(walking[0], 7, True).seen_speed == np.inf  # one message as it is: unknown
 
 

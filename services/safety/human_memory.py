@@ -18,14 +18,9 @@ received at time ``now``:
   imitation may resume with the remaining valid capsules; a slot never seen valid (legs outside
   the camera's view) is never lost and never blocks imitation.
 
-How fast the capsules were *seen* to move over the last :data:`STILL_WINDOW_S` (:func:`seen_speed`)
-is what tells a person standing still from one moving (the intrusion stop backs out of the first
-only). Not their measured velocities, nor a displacement between two states: a camera's noise moves
-a still person's capsules by centimetres from frame to frame (on the camera source's still
-photographs their endpoints show 0.8–2 m/s by either measure), and perception reports a velocity
-of 0 where it cannot compute one (a capsule that just appeared, keypoints re-initialised after a
-jump). Over a window the noise averages out while any motion, steady or back and forth, spreads
-the endpoints.
+How fast the capsules were *seen* to move over the last second of frames
+(:class:`~services.safety.seen_motion.SeenMotion`) is what tells a person standing still from one
+moving (the intrusion stop backs out of the first only).
 
 Time is the caller's clock (the safety service: local receive time; the evaluator: source time).
 Ages are taken at each fresh message only: between messages nothing changes, and a stale human
@@ -42,6 +37,7 @@ from typing import NamedTuple
 import numpy as np
 
 from services.safety.nominal import frame_stamp
+from services.safety.seen_motion import SeenMotion
 from shared.messages import HumanState
 from shared.names import CAPSULE_NAMES
 
@@ -51,8 +47,9 @@ class ExternalCapsules(NamedTuple):
     endpoints (E,2,3) m, radii (E,) m, valid (E,) bool, velocities (E,2,3) m/s or None, sweep (E,) m
     how much each radius grew to enclose the capsule swept ahead (None: none swept), held (E,) bool
     the slots remembered rather than measured in the newest message, whose velocity (0) is unknown
-    (None: none), seen_speed m/s how fast the person was seen to move (:func:`seen_speed`; inf:
-    unknown), measured (E,2,3) m the endpoints as measured, before the sweep (None: none swept)."""
+    (None: none), seen_speed m/s how fast the person was seen to move
+    (:class:`~services.safety.seen_motion.SeenMotion`; inf: unknown), measured (E,2,3) m the
+    endpoints as measured, before the sweep (None: none swept)."""
 
     endpoints: np.ndarray
     radii: np.ndarray
@@ -62,46 +59,6 @@ class ExternalCapsules(NamedTuple):
     held: np.ndarray | None = None
     seen_speed: float = math.inf
     measured: np.ndarray | None = None
-
-
-#: The window (s) over which :func:`seen_speed` judges how a person moved: long enough for a camera's
-#: frame-to-frame noise to average out.
-STILL_WINDOW_S = 1.0
-#: The least time (s) a person must have been seen for :func:`seen_speed` to be known: longer than a
-#: keypoint glitch or the turning point of a swing. Over a span this short the noise counts twice as
-#: much (v = √12 σ / span), so a noisy camera is judged over more of the window.
-STILL_SEEN_FOR_S = 0.5
-
-
-def seen_speed(stamps: np.ndarray, endpoints: np.ndarray, valid: np.ndarray) -> float:
-    """How fast a person's capsules were seen to move over a window of states (m/s): the speed of a
-    uniform motion that would spread a capsule endpoint as far as the states show,
-
-        v = max over endpoints k of √12 · rms_k / W_k,   rms_k² = mean_j ‖e_k(t_j) − ē_k‖²,
-
-    over the capsules valid in the newest state, each over the states where it is valid (ē_k their
-    mean, W_k = t_newest − the first of them: their span). An endpoint moving at a steady v over W
-    has rms v W / √12, so v is its speed; back-and-forth motion (a punch out and back within the
-    window, which a fitted slope would call still) spreads it as well; a still endpoint whose noise
-    has RMS σ has rms σ, so v = √12 σ / W: 3.5 cm/s per cm of noise at W = 1 s.
-
-    ``stamps`` (N,) s increasing (the frames' capture times), ``endpoints`` (N, E, 2, 3) m, ``valid``
-    (N, E) bool, oldest first. inf (unknown: as moving) when a capsule valid in the newest state was
-    valid in fewer than half of the states (it just appeared, or was seen too rarely to say) or over
-    no time; 0 when none is valid in the newest state."""
-    now = valid[-1]
-    if not now.any():
-        return 0.0
-    seen = valid[:, now]  # (N, C) the states where each capsule valid now was valid
-    count = seen.sum(axis=0)
-    span = stamps[-1] - stamps[seen.argmax(axis=0)]  # from each one's first valid state
-    if (2 * count < len(stamps)).any() or not (span > 0.0).all():
-        return math.inf
-    weight = seen[:, :, None, None]
-    ends = endpoints[:, now]  # (N, C, 2, 3)
-    deviation = ends - (weight * ends).sum(axis=0) / count[:, None, None]
-    rms = np.sqrt((weight[..., 0] * (deviation * deviation).sum(axis=3)).sum(axis=0) / count[:, None])  # (C, 2)
-    return math.sqrt(12.0) * float((rms.max(axis=1) / span).max())
 
 
 def padded(
@@ -215,13 +172,15 @@ class HumanMemory:
         self._lateness = FrameLateness()
         #: The newest message's lateness (s, :class:`FrameLateness`): the sweep ahead grows by it.
         self.lateness = 0.0
-        #: the states of the last :data:`STILL_WINDOW_S` of frames: (frame stamp, capsules, valid)
-        self._window: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
-        #: How fast the capsules were seen to move over the last :data:`STILL_WINDOW_S` of frames
-        #: (:func:`seen_speed`, by the frames' stamps, :func:`~services.safety.nominal.frame_stamp`:
-        #: frames published together after a stall are still a frame period apart; m/s; inf until
-        #: the states span :data:`STILL_SEEN_FOR_S`).
-        self.seen_speed = math.inf
+        self._seen = SeenMotion(n)
+
+    @property
+    def seen_speed(self) -> float:
+        """How fast the capsules were seen to move over the last second of frames (m/s, inf while
+        unknown; :class:`~services.safety.seen_motion.SeenMotion`, by the frames' stamps,
+        :func:`~services.safety.nominal.frame_stamp`: frames published together after a stall are
+        still a frame period apart)."""
+        return self._seen.speed
 
     @property
     def lost(self) -> bool:
@@ -238,34 +197,13 @@ class HumanMemory:
         stays lost while it was valid at most ``hold_s`` (s) before ``now``."""
         self.lateness = self._lateness.update(message)
         seen = message.capsule_valid
-        self._see(frame_stamp(message), message.capsules, seen)
+        self._seen.see(frame_stamp(message), message.capsules, seen)
         self._endpoints[seen], self._radii[seen], self._last_valid[seen] = message.capsules[seen], message.capsule_radii[seen], now
         self._lost = ~seen & (now - self._last_valid <= hold_s)
         self._valid = seen | self._lost
         self._velocities = None
         if message.capsule_velocities is not None:
             self._velocities = np.where(seen[:, None, None], message.capsule_velocities, 0.0)
-
-    def _see(self, stamp: float, capsules: np.ndarray, valid: np.ndarray) -> None:
-        """Add a frame to the window and update :attr:`seen_speed`: a frame seen already (the same
-        stamp: the same message again) changes nothing, one older than the newest (the stream
-        started over) starts the window again; the window keeps the frames since ``stamp`` −
-        :data:`STILL_WINDOW_S` and the one just before (so that it spans the whole window), and
-        :attr:`seen_speed` is inf until it spans :data:`STILL_SEEN_FOR_S`."""
-        window = self._window
-        if window and stamp == window[-1][0]:
-            return
-        if window and stamp < window[-1][0]:
-            window.clear()
-        window.append((stamp, capsules.copy(), valid.copy()))
-        while len(window) > 1 and window[1][0] <= stamp - STILL_WINDOW_S:
-            window.popleft()
-        if not window[0][0] <= stamp - STILL_SEEN_FOR_S:
-            self.seen_speed = math.inf
-            return
-        stamps = np.array([frame[0] for frame in window])
-        self.seen_speed = seen_speed(stamps, np.array([frame[1] for frame in window]),
-                                     np.array([frame[2] for frame in window]))
 
     def capsules(self, n_external: int, use_velocity: bool, predict_s: float = 0.0,
                  stale: bool = False) -> ExternalCapsules:

@@ -73,7 +73,7 @@ stand. So the stop backs out of them when
 
 - the person stands still: their capsules seen to move slower than :data:`STILL_SPEED` (0.15 m/s:
   a standing person sways by a few cm/s, a walking one carries the torso at ≥ 0.5 m/s) over up to
-  the last second (:func:`~services.safety.human_memory.seen_speed`: the uniform speed that would
+  the last second (:class:`~services.safety.seen_motion.SeenMotion`: the uniform speed that would
   spread a capsule endpoint as far as those frames show, so a camera's frame-to-frame noise
   averages out while steady or back-and-forth motion counts), seen for at least 0.5 s (longer than
   a keypoint glitch or the turning point of a swing); unknown motion (a stale person, a capsule

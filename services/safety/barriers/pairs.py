@@ -195,7 +195,7 @@ class CollisionGeometry(Barrier):
         #: the person sensor's position uncertainty): h of a robot–person row counts it
         self.person_margin = 0.0
         #: how fast the present external capsules were seen to move at :meth:`set_external` (m/s,
-        #: :func:`~services.safety.human_memory.seen_speed`): 0 with none present, inf when unknown
+        #: :class:`~services.safety.seen_motion.SeenMotion`): 0 with none present, inf when unknown
         #: (not told, a present capsule held, one that just appeared)
         self.person_speed = 0.0
         self._all_enabled = True
@@ -257,7 +257,7 @@ class CollisionGeometry(Barrier):
         before it (:meth:`measured_h`, the rows' :attr:`BarrierRows.h_measured`); ``held`` (E,)
         bool: the capsules remembered rather than measured, whose velocity is unknown (None: none);
         ``seen_speed`` (m/s): how fast they were seen to move over the last states
-        (:func:`~services.safety.human_memory.seen_speed`; inf: unknown). :attr:`person_speed` follows:
+        (:class:`~services.safety.seen_motion.SeenMotion`; inf: unknown). :attr:`person_speed` follows:
         ``seen_speed``, or inf while a present capsule is held. The measured ``velocities`` do not
         count there: a camera's noise gives a still person's capsules velocities of metres per second."""
         ext = slice(N_ROBOT, None)
