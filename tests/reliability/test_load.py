@@ -24,8 +24,9 @@
     non-2xx, or a change not acknowledged as applied). Budgets: answers at 200/s (within
     :data:`API_RATE_TOLERANCE`), p99 < 50 ms.
 
-Each result carries the machine's load average before and after: the checks run on shared
-2-core machines, where timing figures move with what else runs.
+Each result carries the machine's load average before and after (the flood also the host's steal
+time during it, ``steal_pct_during``): the checks run on shared 2-core machines, where timing
+figures move with what else runs.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ from shared.bus import Bus
 from shared.config import BusConfig
 from tests.reliability.check import Check, CheckResult
 from tests.support.bus import BusRecorder
-from tests.support.machine import wake_latency
+from tests.support.machine import cpu_times, steal_pct, wake_latency
 from tests.support.messages import human_state
 
 #: The safety service's control rate under test (Hz).
@@ -296,7 +297,9 @@ def human_state_flood(seconds: float, wake: dict[str, Any]) -> CheckResult:
         with _open_bus(endpoint, robot_id, "load_probe", children) as bus:
             recorder = BusRecorder(bus, ("robot/command", "safety/status"))
             _wait(lambda: recorder.count("robot/command") > SAFETY_RATE_HZ, "1 s of commands from the safety service", children)
+            cpu_before = cpu_times()
             sent: FloodSent = _in_process(publish_flood, endpoint, robot_id, plan, timeout_s=STARTUP_TIMEOUT_S + seconds)
+            flood_steal = steal_pct(cpu_before)
             time.sleep(0.2)  # the statuses after the flood's end
             commands, statuses = flood_record(recorder)
         exit_codes = stop_all(children)
@@ -308,7 +311,8 @@ def human_state_flood(seconds: float, wake: dict[str, Any]) -> CheckResult:
         **kept, "min_deadlines_kept": MIN_DEADLINES_KEPT, **lag, "newest_max_ms": NEWEST_MAX_PERIODS * period * 1e3,
         "human_sent": sent.sent, "human_rate_hz": plan.rate_hz, "burst_size": plan.burst_size,
         "flood_s": round(sent.end - sent.start, 2), **summary, "service_exit": exit_codes["safety"],
-        "load_avg_before": load_before, "load_avg_after": load_avg(), "machine_wake": wake,
+        "load_avg_before": load_before, "load_avg_after": load_avg(), "steal_pct_during": flood_steal,
+        "machine_wake": wake,
     }
     behaved = (lag["newest_lag_ticks_max"] <= NEWEST_MAX_PERIODS and lag["human_seq_went_back"] == 0
                and len(sent.bursts) >= 1 and exit_codes["safety"] == 0)

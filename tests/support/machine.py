@@ -59,28 +59,34 @@ def wake_latency(seconds: float = 1.0, period_s: float = 0.002, priority: int = 
                 late.append(time.monotonic() - due)
                 _ = sum(range(1000))  # a little work, like a control step
 
-    steal_before = _cpu_times()
+    before = cpu_times()
     thread = threading.Thread(target=probe, name="wake-latency")
     thread.start()
     thread.join()
-    steal_after = _cpu_times()
+    steal = steal_pct(before)
     ms = np.asarray(late) * 1e3
-    steal = None
-    if steal_before and steal_after and (total := steal_after[0] - steal_before[0]) > 0:
-        steal = round(100.0 * (steal_after[1] - steal_before[1]) / total, 2)
     p99, worst = float(np.percentile(ms, 99)), float(ms.max())
     return {"p50_ms": round(float(np.percentile(ms, 50)), 3), "p99_ms": round(p99, 3), "max_ms": round(worst, 3),
             "steal_pct": steal, "scheduling": scheduling[0],
             "keeps_time": p99 <= WAKE_P99_MAX_MS and worst <= WAKE_MAX_MS}
 
 
-def _cpu_times() -> tuple[int, int] | None:
-    """(all CPU time, steal time) in clock ticks since boot, from ``/proc/stat`` (Linux)."""
+def cpu_times() -> tuple[int, int] | None:
+    """(all CPU time, steal time) in clock ticks since boot, from ``/proc/stat`` (Linux; None elsewhere)."""
     try:
         fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
     except (OSError, ValueError):
         return None
     return sum(fields[:8]), fields[7] if len(fields) > 7 else 0
+
+
+def steal_pct(before: tuple[int, int] | None) -> float | None:
+    """The host's steal time since ``before`` (:func:`cpu_times`) in % of CPU time: what the
+    hypervisor took from this VM meanwhile (None where unknown or no time passed)."""
+    after = cpu_times()
+    if before is None or after is None or (total := after[0] - before[0]) <= 0:
+        return None
+    return round(100.0 * (after[1] - before[1]) / total, 2)
 
 
 def _cpu_model() -> str:
