@@ -21,7 +21,7 @@ import pytest
 from pydantic import ValidationError
 
 from services.perception.synthetic import skeleton
-from services.safety.human_memory import STILL_WINDOW_S
+from services.safety.seen_motion import STILL_WINDOW_S
 from services.safety.retarget import Retargeter
 from services.safety.service import RESYNC_DONE, RESYNC_TOLERANCE, SafetyService
 from shared.bus import Bus
