@@ -54,12 +54,13 @@ class SeenMotion:
     entered an empty window: d is of the size of the capsule's motion since, so the variance
     Σ‖d‖²/n − ‖Σd/n‖² loses no digits to where the person stands, and a capsule still where it
     entered has d = 0 exactly), added as a frame enters and subtracted as it leaves; a slot's sums
-    restart from exactly 0 when none of its frames is left. The variance is clipped at 0 (rounding); it equals the window's computed in
-    full to rounding (tested on random streams).
+    restart from exactly 0 when none of its frames is left. The variance is clipped at 0 (rounding);
+    it equals the window's computed in full to rounding (tested on random streams).
     """
 
     def __init__(self, n_slots: int) -> None:
-        self._frames: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (stamp, d (E,2,3), valid (E,))
+        #: (stamp, d (E,2,3), ‖d‖² (E,2), valid (E,)) per frame, oldest first
+        self._frames: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = deque()
         self._valid_stamps: list[deque[float]] = [deque() for _ in range(n_slots)]  # per slot, oldest first
         self._reference = np.zeros((n_slots, 2, 3))
         self._count = np.zeros(n_slots, dtype=np.int64)
@@ -92,18 +93,19 @@ class SeenMotion:
         entering = valid & (self._count == 0)
         self._reference[entering] = endpoints[entering]
         d = np.where(valid[:, None, None], endpoints - self._reference, 0.0)
-        self._frames.append((stamp, d, valid))
+        squared = (d * d).sum(axis=2)
+        self._frames.append((stamp, d, squared, valid))
         self._count += valid
         self._sum += d
-        self._sum_sq += (d * d).sum(axis=2)
+        self._sum_sq += squared
         for slot in np.flatnonzero(valid):
             self._valid_stamps[slot].append(stamp)
 
     def _remove_oldest(self) -> None:
-        _, d, valid = self._frames.popleft()
+        _, d, squared, valid = self._frames.popleft()
         self._count -= valid
         self._sum -= d
-        self._sum_sq -= (d * d).sum(axis=2)
+        self._sum_sq -= squared
         for slot in np.flatnonzero(valid):
             self._valid_stamps[slot].popleft()
         emptied = valid & (self._count == 0)
