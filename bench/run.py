@@ -21,6 +21,7 @@ BENCHMARKS: dict[str, str] = {
     "latency": "bench.latency",
     "point_filter": "bench.point_filter",
     "angle_rates": "bench.angle_rates",
+    "human_update": "bench.human_update",
 }
 
 

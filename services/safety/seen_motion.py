@@ -49,7 +49,9 @@ class SeenMotion:
 
     Cost: O(E) per frame whatever the frame rate (E capsule slots), so a perception publishing at
     the control rate costs the control loop no more per state than a 30 Hz camera (the window
-    recomputed in full cost ≈ 0.4 ms per state at 300 Hz). Per slot the window keeps count n_k,
+    recomputed in full cost 0.4–0.8 ms more per state at 300 Hz: ``python -m bench.run
+    human_update``). Per slot (:class:`_Slot`, in Python floats: for 7 slots numpy's per-call cost
+    is most of the work) the window keeps count n_k,
     Σ d and Σ ‖d‖² of d = e − c_k, the endpoints less a reference c_k (the slot's endpoints when it
     entered an empty window: d is of the size of the capsule's motion since, so the variance
     Σ‖d‖²/n − ‖Σd/n‖² loses no digits to where the person stands, and a capsule still where it
@@ -59,13 +61,9 @@ class SeenMotion:
     """
 
     def __init__(self, n_slots: int) -> None:
-        #: (stamp, d (E,2,3), ‖d‖² (E,2), valid (E,)) per frame, oldest first
-        self._frames: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = deque()
-        self._valid_stamps: list[deque[float]] = [deque() for _ in range(n_slots)]  # per slot, oldest first
-        self._reference = np.zeros((n_slots, 2, 3))
-        self._count = np.zeros(n_slots, dtype=np.int64)
-        self._sum = np.zeros((n_slots, 2, 3))
-        self._sum_sq = np.zeros((n_slots, 2))
+        #: (stamp, the slots valid in it with their contribution) per frame, oldest first
+        self._frames: deque[tuple[float, list[tuple[_Slot, _Contribution]]]] = deque()
+        self._slots = [_Slot() for _ in range(n_slots)]
         #: m/s, inf while unknown (see the class doc).
         self.speed = math.inf
 
@@ -82,50 +80,73 @@ class SeenMotion:
             return self.speed
         if frames and stamp < frames[-1][0]:
             self._clear()
-        self._add(stamp, endpoints, valid)
+        points = endpoints.reshape(len(self._slots), 6).tolist()  # Python floats: 7 slots cost less than numpy's calls
+        seen = [(slot, slot.add(stamp, point))
+                for slot, point, is_valid in zip(self._slots, points, valid.tolist(), strict=True) if is_valid]
+        frames.append((stamp, seen))
         while len(frames) > 1 and frames[1][0] <= stamp - STILL_WINDOW_S:
-            self._remove_oldest()
-        self.speed = self._speed(stamp, valid) if frames[0][0] <= stamp - STILL_SEEN_FOR_S else math.inf
+            for slot, contribution in frames.popleft()[1]:
+                slot.remove(contribution)
+        if not frames[0][0] <= stamp - STILL_SEEN_FOR_S:
+            self.speed = math.inf
+        else:
+            speeds = [slot.speed(stamp, len(frames)) for slot, _ in seen]
+            self.speed = math.sqrt(12.0) * max(speeds) if speeds else 0.0
         return self.speed
-
-    def _add(self, stamp: float, endpoints: np.ndarray, valid: np.ndarray) -> None:
-        valid = valid.copy()
-        entering = valid & (self._count == 0)
-        self._reference[entering] = endpoints[entering]
-        d = np.where(valid[:, None, None], endpoints - self._reference, 0.0)
-        squared = (d * d).sum(axis=2)
-        self._frames.append((stamp, d, squared, valid))
-        self._count += valid
-        self._sum += d
-        self._sum_sq += squared
-        for slot in np.flatnonzero(valid):
-            self._valid_stamps[slot].append(stamp)
-
-    def _remove_oldest(self) -> None:
-        _, d, squared, valid = self._frames.popleft()
-        self._count -= valid
-        self._sum -= d
-        self._sum_sq -= squared
-        for slot in np.flatnonzero(valid):
-            self._valid_stamps[slot].popleft()
-        emptied = valid & (self._count == 0)
-        self._sum[emptied], self._sum_sq[emptied] = 0.0, 0.0
 
     def _clear(self) -> None:
         self._frames.clear()
-        for stamps in self._valid_stamps:
-            stamps.clear()
-        self._count[:], self._sum[:], self._sum_sq[:] = 0, 0.0, 0.0
+        self._slots = [_Slot() for _ in self._slots]
 
-    def _speed(self, stamp: float, now: np.ndarray) -> float:
-        """The class doc's v over the window, from its sums, for the slots valid ``now``."""
-        if not now.any():
-            return 0.0
-        count = self._count[now]
-        span = stamp - np.array([self._valid_stamps[slot][0] for slot in np.flatnonzero(now)])
-        if (2 * count < len(self._frames)).any() or not (span > 0.0).all():
+
+#: One frame's share of a slot's sums: d (6 floats: both endpoints less the reference), ‖d_a‖², ‖d_b‖².
+_Contribution = tuple[list[float], float, float]
+
+
+class _Slot:
+    """One capsule slot's running sums over the window's frames where it is valid (see
+    :class:`SeenMotion`): count n, Σ d, Σ ‖d‖² per endpoint, the stamps of those frames."""
+
+    __slots__ = ("count", "reference", "sums", "squares", "stamps")
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.reference = [0.0] * 6
+        self.sums = [0.0] * 6
+        self.squares = [0.0, 0.0]
+        self.stamps: deque[float] = deque()
+
+    def add(self, stamp: float, point: list[float]) -> _Contribution:
+        """Count a frame at ``stamp`` where the slot's endpoints are ``point`` (a then b, x y z, m)."""
+        if not self.count:
+            self.reference = point
+        d = [p - r for p, r in zip(point, self.reference)]
+        square_a, square_b = d[0] * d[0] + d[1] * d[1] + d[2] * d[2], d[3] * d[3] + d[4] * d[4] + d[5] * d[5]
+        self.sums = [s + x for s, x in zip(self.sums, d)]
+        self.squares = [self.squares[0] + square_a, self.squares[1] + square_b]
+        self.count += 1
+        self.stamps.append(stamp)
+        return d, square_a, square_b
+
+    def remove(self, contribution: _Contribution) -> None:
+        """Forget a frame that left the window (the oldest one this slot counts)."""
+        d, square_a, square_b = contribution
+        self.count -= 1
+        self.stamps.popleft()
+        if not self.count:  # restart from exactly 0, not from what rounding left
+            self.sums, self.squares = [0.0] * 6, [0.0, 0.0]
+            return
+        self.sums = [s - x for s, x in zip(self.sums, d)]
+        self.squares = [self.squares[0] - square_a, self.squares[1] - square_b]
+
+    def speed(self, stamp: float, frames: int) -> float:
+        """max over the two endpoints of rms / span (1/√12 of :class:`SeenMotion`'s v) at ``stamp``,
+        with ``frames`` in the window; inf when counted in under half of them or over no time."""
+        n, span = self.count, stamp - self.stamps[0]
+        if 2 * n < frames or not span > 0.0:
             return math.inf
-        mean = self._sum[now] / count[:, None, None]
-        variance = self._sum_sq[now] / count[:, None] - (mean * mean).sum(axis=2)  # (C, 2)
-        rms = np.sqrt(np.maximum(variance, 0.0))
-        return math.sqrt(12.0) * float((rms.max(axis=1) / span).max())
+        s, worst = self.sums, 0.0
+        for end, square in enumerate(self.squares):
+            mx, my, mz = s[3 * end] / n, s[3 * end + 1] / n, s[3 * end + 2] / n
+            worst = max(worst, square / n - (mx * mx + my * my + mz * mz))
+        return math.sqrt(worst) / span
