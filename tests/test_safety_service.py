@@ -31,7 +31,7 @@ from shared.names import CAPSULE_NAMES, KEYPOINT_NAMES, POSE_ANGLE_NAMES
 from shared.realtime import enter_realtime, leave_realtime
 from shared.robot_spec import default_robot_spec_path, load_robot_spec
 from tests.support.bus import BusRecorder
-from tests.support.machine import wake_latency
+from tests.support.machine import cpu_times, host_kept_cpu, steal_pct, wake_latency
 from tests.support.processes import Proc, free_port
 
 LEFT_SHOULDER_PITCH = POSE_ANGLE_NAMES.index("left_shoulder_pitch")  # θ index = joint index
@@ -154,14 +154,19 @@ def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, m
         rec = BusRecorder(bus, ("robot/command", "safety/status"))
         proc = spawn(*service_args(port, robot_id, 6.5))
         t0 = wait_first_command(rec, proc)
+        cpu_before = cpu_times()
         assert "safety" in bus.alive_services(timeout_s=1.0)
         time.sleep(max(0.0, t0 + 5.2 - time.monotonic()))
+        steal = steal_pct(cpu_before)
         commands = rec.timed("robot/command")
         status = rec.last("safety/status")
         summary = proc.wait_for(lambda line: line.startswith("safety:") and "ticks" in line, timeout=10)
         assert proc.popen.wait(5) == 0
         decode_failures = dict(bus.dropped)
 
+    # the budgets are held where the machine woke a control thread on time just before and its host
+    # took no CPU from it meanwhile (tests.support.machine.host_kept_cpu)
+    held = machine_wake["keeps_time"] and host_kept_cpu(steal)
     # ≈ 500 commands in every second, none lost, all finite, nominal (nothing to avoid, nothing to
     # track). Seconds are counted on the commands' own stamps (the service's CLOCK_MONOTONIC, the
     # same clock as ours on one host), so a hiccup of this receiving process does not blur them.
@@ -171,13 +176,13 @@ def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, m
     # no second with a long stall or a burst; < 1 % of the 2,500 deadlines missed over the 5 s (a
     # skipped slot sends no command) where the machine wakes a control thread on time
     assert all(450 <= n <= 505 for n in per_second), per_second
-    if machine_wake["keeps_time"]:
-        assert sum(per_second) >= 0.99 * 5 * RATE_HZ, (per_second, machine_wake)
+    if held:
+        assert sum(per_second) >= 0.99 * 5 * RATE_HZ, (per_second, machine_wake, steal)
     # commands are put with Zenoh's default congestion control (drop, the newest command wins): on a
     # machine that wakes threads late the sender's queue can overflow, so losses are a budget there
     seqs = np.array([m.seq for m in window])
     lost = seqs[-1] - seqs[0] + 1 - len(window)
-    if machine_wake["keeps_time"]:
+    if held:
         assert lost <= 0.005 * len(window), ("commands lost on loopback", lost, machine_wake)
     assert lost <= 0.05 * len(window), ("commands lost on loopback", lost)  # never a large share
     assert not decode_failures, decode_failures
@@ -189,8 +194,8 @@ def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, m
     # The service's own account: deadline misses < 1 % of its ticks (ticks = command seq + 1), held
     # where the machine wakes a control thread on time (machine_wake; architecture §8).
     ticks = commands[-1][1].seq + 1
-    if machine_wake["keeps_time"]:
-        assert status.deadline_misses < 0.01 * ticks, (status, ticks, machine_wake)
+    if held:
+        assert status.deadline_misses < 0.01 * ticks, (status, ticks, machine_wake, steal)
     assert status.mode is SafetyMode.NOMINAL and status.min_h_human is None and not status.human_stale
     assert status.min_h_self is not None and status.min_h_self > 0
     assert status.backend == "daqp" and status.total_constraints == N_SELF_PAIRS
@@ -199,10 +204,10 @@ def test_runs_at_500_hz_over_zenoh_with_under_1_percent_deadline_misses(spawn, m
     assert m, summary
     n_ticks, elapsed, achieved, misses = int(m[1]), float(m[2]), float(m[3]), int(m[4])
     assert abs(elapsed - 6.5) < 0.1, summary
-    if machine_wake["keeps_time"]:  # the achieved rate is the ticks that kept their deadline: a budget
+    if held:  # the achieved rate is the ticks that kept their deadline: a budget
         assert misses < 0.01 * n_ticks and abs(achieved - RATE_HZ) < 0.01 * RATE_HZ, summary
     assert achieved > 0.9 * RATE_HZ, summary  # never a long stall
-    print(f"\n  {summary.strip()}; per second {per_second}; machine wake-up latency {machine_wake}")
+    print(f"\n  {summary.strip()}; per second {per_second}; machine wake-up latency {machine_wake}; host steal {steal} %")
 
 
 # --------------------------------------------------------------------------- one shared service

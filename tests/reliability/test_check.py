@@ -7,7 +7,9 @@ import json
 from pathlib import Path
 
 from tests.reliability.check import CheckResult, write_report
-from tests.support.machine import WAKE_MAX_MS, WAKE_P99_MAX_MS, wake_latency
+from tests.support.machine import (
+    STEAL_MAX_PCT, WAKE_MAX_MS, WAKE_P99_MAX_MS, cpu_times, host_kept_cpu, steal_pct, wake_latency,
+)
 
 
 def test_a_check_passes_only_when_it_behaved_and_met_every_budget() -> None:
@@ -50,3 +52,16 @@ def test_wake_latency_measures_lateness_and_says_whether_the_machine_keeps_time(
     assert wake["keeps_time"] == (wake["p99_ms"] <= WAKE_P99_MAX_MS and wake["max_ms"] <= WAKE_MAX_MS)
     assert wake["steal_pct"] is None or 0.0 <= wake["steal_pct"] <= 100.0
     assert wake["scheduling"]
+
+
+def test_the_hosts_steal_over_a_window_and_whether_it_took_too_much() -> None:
+    """steal_pct over a window from cpu_times (None where /proc/stat is missing or no time passed);
+    a budget is held only where the host took at most STEAL_MAX_PCT of the CPU (or nobody knows)."""
+    before = cpu_times()
+    sum(range(2_000_000))  # some CPU time passes
+    steal = steal_pct(before)
+    assert before is not None or steal is None  # unknown where /proc/stat is not
+    assert steal is None or 0.0 <= steal <= 100.0
+    assert steal_pct(None) is None
+    assert host_kept_cpu(None) and host_kept_cpu(0.0) and host_kept_cpu(STEAL_MAX_PCT)
+    assert not host_kept_cpu(STEAL_MAX_PCT + 0.01) and not host_kept_cpu(22.27)
