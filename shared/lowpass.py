@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 from typing import TYPE_CHECKING
 
@@ -40,33 +41,47 @@ class RateFilter:
 
     def __init__(self, n: int, cutoff_hz: float, beta: float = 0.0, second_order: bool = False) -> None:
         self.configure(cutoff_hz, beta, second_order)
-        self.rate = np.zeros(n)  # ω̂ (unit/s)
-        self._slope = np.zeros(n)  # s' of the previous usable interval
-        self._interval = np.zeros(n)  # its Δt' (s); 0: none
+        # per channel, in Python floats (for a few channels numpy's cost per call was most of the work)
+        self._rate = [0.0] * n  # ω̂ (unit/s)
+        self._slope = [0.0] * n  # s' of the previous usable interval
+        self._interval = [0.0] * n  # its Δt' (s); 0: none
+
+    @property
+    def rate(self) -> np.ndarray:
+        """ω̂ (n,) unit/s, a fresh array."""
+        return np.array(self._rate)
 
     def configure(self, cutoff_hz: float, beta: float = 0.0, second_order: bool = False) -> None:
         """New parameters from the next update on (the state is kept)."""
         self.cutoff_hz, self.beta, self.second_order = float(cutoff_hz), float(beta), bool(second_order)
 
-    def reset(self, channels: np.ndarray | slice = slice(None)) -> None:
-        """Restart ``channels`` (all by default): rate 0, no previous interval."""
-        self.rate[channels] = 0.0
-        self._interval[channels] = 0.0
+    def reset(self, channels: Sequence[bool] | np.ndarray | None = None) -> None:
+        """Restart the ``channels`` (n,) marked True (None: all): rate 0, no previous interval."""
+        marked = [True] * len(self._rate) if channels is None else _as_list(channels)
+        for i, restart in enumerate(marked):
+            if restart:
+                self._rate[i] = self._interval[i] = 0.0
 
-    def update(self, dt: float, step: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    def update(self, dt: float, step: Sequence[float] | np.ndarray, usable: Sequence[bool] | np.ndarray) -> np.ndarray:
         """ω̂ (n,) after a sample ``dt`` s after the previous one (> 0) with differences ``step`` (n,);
-        channels not ``usable`` (n,) restart (class docstring). Returns a copy."""
-        slope = np.where(usable, step, 0.0) / dt
-        omega = slope.copy()
-        if self.second_order:
-            known = self._interval > 0.0
-            omega[known] += (slope[known] - self._slope[known]) * (dt / (self._interval[known] + dt))
-        gain = lowpass_gain(dt, self.cutoff_hz + self.beta * np.abs(self.rate))
-        self.rate += gain * (omega - self.rate)
-        self._slope[:] = slope
-        self._interval[:] = dt
-        self.reset(~usable)
-        return self.rate.copy()
+        channels not ``usable`` (n,) restart (class docstring). Returns a fresh array."""
+        cutoff, beta, second_order = self.cutoff_hz, self.beta, self.second_order
+        rate, previous, interval = self._rate, self._slope, self._interval
+        for i, (difference, use) in enumerate(zip(_as_list(step), _as_list(usable))):
+            slope = difference / dt if use else 0.0
+            omega = slope
+            if second_order and interval[i] > 0.0:
+                omega += (slope - previous[i]) * (dt / (interval[i] + dt))
+            r = rate[i]
+            r += lowpass_gain(dt, cutoff + beta * abs(r)) * (omega - r)
+            previous[i] = slope
+            rate[i], interval[i] = (r, dt) if use else (0.0, 0.0)
+        return np.array(rate)
+
+
+def _as_list(x: Sequence | np.ndarray) -> list:
+    """``x`` (n,) as a list of Python scalars."""
+    return x.tolist() if isinstance(x, np.ndarray) else list(x)
 
 
 def angle_rate_parameters(conf: PoseAnglesConfig) -> tuple[float, float, bool]:

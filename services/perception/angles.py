@@ -165,8 +165,7 @@ class PoseEstimator:
 
     def __init__(self, conf: PoseAnglesConfig) -> None:
         self.configure(conf)
-        self.theta = np.zeros(N_ANGLES)
-        self.theta_valid = np.zeros(N_ANGLES, dtype=bool)
+        self._theta = [0.0] * N_ANGLES  # the last valid value of each angle (held while invalid)
         self._history = [False, False]  # per arm: previous pitch/roll usable for branch tracking
         self._tracked = [[0.0, 0.0], [0.0, 0.0]]  # per arm: the chain's (pitch, roll) before spreading
         self._offset = [[0.0, 0.0], [0.0, 0.0]]  # per arm: output − tracked, decaying to 0 (step 3)
@@ -181,7 +180,6 @@ class PoseEstimator:
         """Forget the branch history (held outputs stay, for display only: they are invalid now)."""
         self._history = [False, False]
         self._t = None
-        self.theta_valid[:] = False
 
     def __call__(self, xyz: np.ndarray, valid: np.ndarray, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """θ, θ_valid of one frame; ``t`` (s) paces the branch-switch spreading (None: frames 1/30 s apart)."""
@@ -189,8 +187,7 @@ class PoseEstimator:
         self._t = t
         points: list[Vec] = xyz.tolist()
         present: list[bool] = valid.tolist()
-        theta, ok = self.theta, self.theta_valid
-        ok[:] = False
+        theta, ok = self._theta, [False] * N_ANGLES
         axes = None
         if present[_PELVIS] and present[_L_SHOULDER] and present[_R_SHOULDER]:
             axes = torso_axes(points[_PELVIS], points[_L_SHOULDER], points[_R_SHOULDER], self.conf.min_segment)
@@ -212,7 +209,7 @@ class PoseEstimator:
             theta[first], theta[first + 1] = pitch, roll
             ok[first] = ok[first + 1] = True
             self._history[arm] = True
-        return theta.copy(), ok.copy()
+        return np.array(theta), np.array(ok)
 
     def _arm_geometry(
         self, points: list[Vec], present: list[bool], axes: tuple[Vec, Vec, Vec] | None,
@@ -298,13 +295,15 @@ def _angle_keypoints() -> np.ndarray:
 
 
 ANGLE_KEYPOINTS = _angle_keypoints()
+#: the indices of each angle's keypoints (:data:`ANGLE_KEYPOINTS`, row by row)
+_ANGLE_KEYPOINT_LISTS = [np.flatnonzero(row).tolist() for row in ANGLE_KEYPOINTS]
 
 
 class AngleRates:
     """θ̇ (8,) rad/s from consecutive θ of one person (the contract of ``HumanState.theta_rate``).
 
-    Per angle i, between frames at t_prev and t (Δt = t − t_prev > 0) where θ_i is valid in both
-    and none of its keypoints (:data:`ANGLE_KEYPOINTS`) is fresh (re-initialised by the point
+    Per angle i, between frames at t_prev and t (Δt = t − t_prev > 0) where θ_i is valid (and
+    finite) in both and none of its keypoints (:data:`ANGLE_KEYPOINTS`) is fresh (re-initialised by the point
     filter this frame), the difference θ_i(t) − θ_i(t_prev) wrapped into [−π, π) goes through the
     rate filter of ``conf`` (:class:`shared.lowpass.RateFilter`: the slope at the newest frame, second order
     where the previous difference was usable too, low-passed at ``rate_cutoff_hz`` plus
@@ -314,8 +313,8 @@ class AngleRates:
 
     def __init__(self, conf: PoseAnglesConfig) -> None:
         self.filter = angle_rate_filter(N_ANGLES, conf)
-        self._theta = np.zeros(N_ANGLES)
-        self._valid = np.zeros(N_ANGLES, dtype=bool)
+        self._theta = [0.0] * N_ANGLES
+        self._valid = [False] * N_ANGLES
         self._t: float | None = None
 
     def configure(self, conf: PoseAnglesConfig) -> None:
@@ -324,20 +323,26 @@ class AngleRates:
 
     def reset(self) -> None:
         self.filter.reset()
-        self._valid[:] = False
+        self._valid = [False] * N_ANGLES
         self._t = None
 
     def __call__(self, t: float, theta: np.ndarray, valid: np.ndarray, fresh: np.ndarray) -> np.ndarray:
         """θ̇ at ``t`` (s) from θ (8,), θ_valid (8,) and the filter's ``fresh`` (15,) points."""
         dt = 0.0 if self._t is None else t - self._t
-        usable = valid & self._valid & ~(ANGLE_KEYPOINTS & fresh).any(axis=1)
-        if dt > 0.0 and usable.any():
-            step = theta - self._theta
-            step -= _TWO_PI * np.floor((step + math.pi) / _TWO_PI)  # into [−π, π), per angle
-            self.filter.update(dt, step, usable)
+        angles: list[float] = theta.tolist()
+        steps = [now - before for now, before in zip(angles, self._theta)]
+        usable = [now and before and math.isfinite(d) for now, before, d in zip(valid.tolist(), self._valid, steps)]
+        if fresh.any():
+            is_fresh: list[bool] = fresh.tolist()
+            usable = [use and not any(is_fresh[k] for k in uses) for use, uses in zip(usable, _ANGLE_KEYPOINT_LISTS)]
+        if dt > 0.0 and any(usable):
+            wrapped = [d - _TWO_PI * math.floor((d + math.pi) / _TWO_PI) if use else 0.0  # into [−π, π)
+                       for d, use in zip(steps, usable)]
+            rate = self.filter.update(dt, wrapped, usable)
         else:
-            self.filter.reset(~usable)
-        self._theta[:] = theta
-        self._valid[:] = valid
+            self.filter.reset([not use for use in usable])
+            rate = self.filter.rate
+        self._theta = angles
+        self._valid = valid.tolist()
         self._t = t
-        return self.filter.rate.copy()
+        return rate

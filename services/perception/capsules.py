@@ -54,7 +54,7 @@ class HumanCapsules:
     def __init__(self, human: HumanConfig) -> None:
         self.configure(human)
         self.endpoints = np.zeros((N_CAPSULES, 2, 3))
-        self.valid = np.zeros(N_CAPSULES, dtype=bool)
+        self._valid = [False] * N_CAPSULES
         self._t: float | None = None
         self._torso_from_shoulders = False
 
@@ -66,20 +66,23 @@ class HumanCapsules:
     def reset(self) -> None:
         """Forget the previous frame (no velocities until the next two valid frames)."""
         self._t = None
-        self.valid[:] = False
+        self._valid = [False] * N_CAPSULES
 
     def __call__(self, skeleton: FilteredSkeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        points = skeleton.points
+        """(endpoints (7, 2, 3), valid (7,), velocities (7, 2, 3)) of ``skeleton`` (module docstring).
+        Built in Python floats and made arrays once: for 7 capsules numpy's cost per call was most
+        of the work."""
+        points: list[list[float]] = skeleton.points.tolist()
         point_valid: list[bool] = skeleton.valid.tolist()
         point_fresh: list[bool] = skeleton.fresh.tolist()
-        ends = points[_ENDPOINTS]  # (7, 2, 3)
+        ends = [[points[a], points[b]] for a, b in _PAIRS]
         valid = [point_valid[a] and point_valid[b] for a, b in _PAIRS]
         fresh = [point_fresh[a] or point_fresh[b] for a, b in _PAIRS]
 
         left, right = _SHOULDERS
         from_shoulders = not valid[_TORSO] and point_valid[_PELVIS] and point_valid[left] and point_valid[right]
         if from_shoulders:
-            ends[_TORSO, 1] = 0.5 * (points[left] + points[right])
+            ends[_TORSO][1] = [0.5 * (a + b) for a, b in zip(points[left], points[right])]
             valid[_TORSO] = True
             fresh[_TORSO] = point_fresh[_PELVIS] or point_fresh[left] or point_fresh[right]
         if from_shoulders != self._torso_from_shoulders:
@@ -87,20 +90,26 @@ class HumanCapsules:
             self._torso_from_shoulders = from_shoulders
 
         for i in _FOREARMS:  # extend past the wrist along the forearm
-            fore = ends[i, 1] - ends[i, 0]
-            length = math.sqrt(float(fore @ fore))
+            (x0, y0, z0), (x1, y1, z1) = ends[i]
+            fore = (x1 - x0, y1 - y0, z1 - z0)
+            length = math.sqrt(fore[0] * fore[0] + fore[1] * fore[1] + fore[2] * fore[2])
             if length > 1e-9:
-                ends[i, 1] += (self.hand_extension / length) * fore
+                scale = self.hand_extension / length
+                ends[i][1] = [x1 + scale * fore[0], y1 + scale * fore[1], z1 + scale * fore[2]]
 
+        endpoints = np.array(ends)  # (7, 2, 3)
         valid_now = np.array(valid)
         if self._t is not None and skeleton.t > self._t:
-            moving = valid_now & self.valid & ~np.array(fresh)
-            velocities = (ends - self.endpoints) * (1.0 / (skeleton.t - self._t))
-            if not moving.all():
-                velocities[~moving] = 0.0
+            moving = [now and before and not new for now, before, new in zip(valid, self._valid, fresh)]
+            velocities = (endpoints - self.endpoints) * (1.0 / (skeleton.t - self._t))
+            if not all(moving):
+                velocities[~np.array(moving)] = 0.0
         else:
             velocities = np.zeros((N_CAPSULES, 2, 3))
-        np.copyto(self.endpoints, ends, where=valid_now[:, None, None])
-        self.valid = valid_now
+        if all(valid):
+            self.endpoints = endpoints
+        else:
+            np.copyto(self.endpoints, endpoints, where=valid_now[:, None, None])
+        self._valid = valid
         self._t = skeleton.t
-        return self.endpoints.copy(), valid_now.copy(), velocities
+        return self.endpoints.copy(), valid_now, velocities

@@ -34,12 +34,18 @@ not be differenced across them.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from shared.config import PointFilterConfig, PointFilterKind
 from shared.lowpass import lowpass_gain
+
+#: a point (x, y, z) in metres, or a velocity in m/s
+Vec = Sequence[float]
+#: the estimate of a point never seen (NaN: its ``points`` row)
+_NEVER_SEEN: Vec = (math.nan, math.nan, math.nan)
 
 
 @dataclass(frozen=True)
@@ -57,13 +63,14 @@ class _Ema:
 
     def __init__(self, conf: PointFilterConfig, n_points: int) -> None:
         self.conf = conf
+        self.n_points = n_points
 
     def alpha(self, dt: float, speed: float = 0.0) -> float:
         tau = self.conf.ema_tau_s
         return 1.0 if tau <= 0.0 else -math.expm1(-dt / tau)
 
-    def gains(self, dt: float, velocity: np.ndarray, update: np.ndarray, fresh: np.ndarray) -> float | np.ndarray:
-        return self.alpha(dt)
+    def gains(self, dt: float, velocity: list[Vec | None], fresh: list[bool]) -> list[float]:
+        return [self.alpha(dt)] * self.n_points
 
     def reset(self) -> None:
         pass
@@ -74,22 +81,34 @@ class _OneEuro:
 
     def __init__(self, conf: PointFilterConfig, n_points: int) -> None:
         self.conf = conf
-        self._velocity = np.zeros((n_points, 3))  # ẋ̂ (m/s)
+        self._velocity: list[Vec] = [(0.0, 0.0, 0.0)] * n_points  # ẋ̂ (m/s)
 
     def alpha(self, dt: float, speed: float = 0.0) -> float:
-        return float(lowpass_gain(dt, self.conf.min_cutoff_hz + self.conf.beta * speed))
+        return lowpass_gain(dt, self.conf.min_cutoff_hz + self.conf.beta * speed)
 
-    def gains(self, dt: float, velocity: np.ndarray, update: np.ndarray, fresh: np.ndarray) -> float | np.ndarray:
-        conf, smoothed = self.conf, self._velocity
+    def gains(self, dt: float, velocity: list[Vec | None], fresh: list[bool]) -> list[float]:
+        """α per point; ``velocity[k]`` the raw velocity of a point accepted with history (None:
+        not updated this frame), ``fresh[k]``: the point starts afresh (ẋ̂ = 0)."""
         if dt <= 0.0:
-            return 1.0
-        smoothed += np.where(update[:, None], lowpass_gain(dt, conf.d_cutoff_hz) * (velocity - smoothed), 0.0)
-        smoothed[fresh] = 0.0
-        speed = np.sqrt(np.einsum("ij,ij->i", smoothed, smoothed))
-        return lowpass_gain(dt, conf.min_cutoff_hz + conf.beta * speed)
+            return [1.0] * len(velocity)
+        conf, smoothed = self.conf, self._velocity
+        a_d, min_cutoff, beta = lowpass_gain(dt, conf.d_cutoff_hz), conf.min_cutoff_hz, conf.beta
+        two_pi = 2.0 * math.pi  # lowpass_gain inlined below (its operations in its order)
+        out = []
+        for k, raw in enumerate(velocity):
+            if fresh[k]:
+                v = smoothed[k] = (0.0, 0.0, 0.0)
+            elif raw is not None:
+                s0, s1, s2 = smoothed[k]
+                v = smoothed[k] = (s0 + a_d * (raw[0] - s0), s1 + a_d * (raw[1] - s1), s2 + a_d * (raw[2] - s2))
+            else:
+                v = smoothed[k]
+            cutoff = min_cutoff + beta * math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+            out.append(1.0 / (1.0 + 1.0 / (two_pi * cutoff * dt)))
+        return out
 
     def reset(self) -> None:
-        self._velocity[:] = 0.0
+        self._velocity = [(0.0, 0.0, 0.0)] * len(self._velocity)
 
 
 _SMOOTHING = {PointFilterKind.EMA: _Ema, PointFilterKind.ONE_EURO: _OneEuro}
@@ -98,7 +117,10 @@ _SMOOTHING = {PointFilterKind.EMA: _Ema, PointFilterKind.ONE_EURO: _OneEuro}
 class PointFilter:
     """Smoothing (EMA or One Euro) + jump rejection for K keypoints; counters ``rejected``,
     ``reacquired``, ``resets``. Assigning ``conf`` applies new parameters from the next frame on
-    (a new ``kind`` starts its smoothing state afresh)."""
+    (a new ``kind`` starts its smoothing state afresh).
+
+    The state is kept per point in Python floats: for 15 points numpy's cost per call was most of
+    the work (``python -m bench.run perception``)."""
 
     def __init__(self, conf: PointFilterConfig, n_points: int) -> None:
         self.n_points = n_points
@@ -108,13 +130,12 @@ class PointFilter:
         self.reacquired = 0
         self.resets = 0
         self._t: float | None = None
-        self._estimate = np.full((n_points, 3), np.nan)
-        self._accepted = np.zeros((n_points, 3))
-        self._accepted_t = np.full(n_points, -np.inf)
-        self._candidate = np.zeros((n_points, 3))
-        self._candidate_t = np.full(n_points, -np.inf)
-        self._candidate_n = np.zeros(n_points, dtype=np.int64)
-        self._candidates_pending = False  # some _candidate_n > 0
+        self._estimate: list[Vec] = [_NEVER_SEEN] * n_points
+        self._accepted: list[Vec] = [(0.0, 0.0, 0.0)] * n_points
+        self._accepted_t = [-math.inf] * n_points
+        self._candidate: list[Vec] = [(0.0, 0.0, 0.0)] * n_points
+        self._candidate_t = [-math.inf] * n_points
+        self._candidate_n = [0] * n_points
 
     @property
     def conf(self) -> PointFilterConfig:
@@ -137,12 +158,12 @@ class PointFilter:
 
     def reset(self) -> None:
         """Forget every point (the next frame initialises them)."""
+        n = self.n_points
         self._t = None
-        self._estimate[:] = np.nan
-        self._accepted_t[:] = -np.inf
-        self._candidate_t[:] = -np.inf
-        self._candidate_n[:] = 0
-        self._candidates_pending = False
+        self._estimate = [_NEVER_SEEN] * n
+        self._accepted_t = [-math.inf] * n
+        self._candidate_t = [-math.inf] * n
+        self._candidate_n = [0] * n
         self._smoothing.reset()
 
     def __call__(self, t: float, xyz: np.ndarray, confidence: np.ndarray, discontinuity: bool = False) -> FilteredSkeleton:
@@ -153,53 +174,62 @@ class PointFilter:
             self.resets += 1
         dt = 0.0 if self._t is None else t - self._t
         self._t = t
-
-        # A row sum is finite iff all three coordinates are; NaN confidences compare False.
-        present = np.isfinite(np.add.reduce(xyz, axis=1)) & (confidence >= conf.min_confidence)
-        x = np.where(present[:, None], xyz, 0.0)
-        since_accepted = t - self._accepted_t
-        anchored = since_accepted <= conf.hold_s
-        jump = present & anchored & (_squared_distance(x, self._accepted) > (conf.max_speed * since_accepted) ** 2)
-        if jump.any():
-            reacquire = self._track_candidates(t, x, jump)
-            rejected = jump & ~reacquire
-            self.rejected += int(rejected.sum())
-            self.reacquired += int(reacquire.sum())
-            accept = present & ~rejected
-            fresh = accept & (~anchored | reacquire)
-        else:
-            if self._candidates_pending:
-                self._candidate_n[:] = 0
-            accept = present
-            fresh = accept & ~anchored
+        hold_s, max_speed, min_confidence = conf.hold_s, conf.max_speed, conf.min_confidence
+        accepted, accepted_t = self._accepted, self._accepted_t
+        n = self.n_points
+        accept, fresh = [False] * n, [False] * n
+        velocity: list[Vec | None] = [None] * n  # raw velocity of the points accepted with history
+        for k, (x, c) in enumerate(zip(xyz.tolist(), confidence.tolist())):
+            # A sum is finite iff all three coordinates are; a NaN confidence compares False.
+            if not (math.isfinite(x[0] + x[1] + x[2]) and c >= min_confidence):
+                self._candidate_n[k] = 0
+                continue
+            since = t - accepted_t[k]
+            anchored = since <= hold_s
+            reacquire = False
+            if anchored and _squared_distance(x, accepted[k]) > (max_speed * since) ** 2:  # a jump
+                if not self._reacquires(k, t, x):
+                    self.rejected += 1
+                    continue
+                self.reacquired += 1
+                reacquire = True
+            else:
+                self._candidate_n[k] = 0
+            accept[k] = True
+            if not anchored or reacquire:
+                fresh[k] = True
+            else:
+                a, elapsed = accepted[k], t - accepted_t[k]
+                velocity[k] = ((x[0] - a[0]) / elapsed, (x[1] - a[1]) / elapsed, (x[2] - a[2]) / elapsed)
+            accepted[k], accepted_t[k] = x, t  # x: this frame's own list
 
         # x̂ ← x where fresh, x̂ + α (x − x̂) where accepted with history, unchanged elsewhere.
+        alpha = self._smoothing.gains(dt, velocity, fresh)
         estimate = self._estimate
-        update = accept & ~fresh
-        with np.errstate(invalid="ignore", divide="ignore"):  # rows outside ``update`` are not used
-            velocity = (x - self._accepted) / (t - self._accepted_t)[:, None]
-        alpha = self._smoothing.gains(dt, velocity, update, fresh)
-        gain = np.where(fresh, 1.0, np.where(accept, alpha, 0.0))[:, None]
-        np.copyto(estimate, 0.0, where=fresh[:, None])  # NaN-free before blending
-        estimate += gain * (x - estimate)
-        np.copyto(self._accepted, x, where=accept[:, None])
-        np.copyto(self._accepted_t, t, where=accept)
-        valid = (t - self._accepted_t) <= conf.hold_s
-        return FilteredSkeleton(t=t, points=estimate.copy(), valid=valid, fresh=fresh)
+        for k in range(n):
+            if fresh[k]:
+                estimate[k] = accepted[k]
+            elif accept[k]:
+                e, x, g = estimate[k], accepted[k], alpha[k]
+                estimate[k] = (e[0] + g * (x[0] - e[0]), e[1] + g * (x[1] - e[1]), e[2] + g * (x[2] - e[2]))
+        valid = [t - a <= hold_s for a in accepted_t]
+        return FilteredSkeleton(t=t, points=np.array(estimate), valid=np.array(valid), fresh=np.array(fresh))
 
-    def _track_candidates(self, t: float, x: np.ndarray, jump: np.ndarray) -> np.ndarray:
-        """Update the per-point run of mutually consistent rejected measurements; True: re-anchor."""
-        speed_bound = self.conf.max_speed * (t - self._candidate_t)
-        consistent = (self._candidate_n > 0) & (_squared_distance(x, self._candidate) <= speed_bound**2)
-        self._candidate_n = np.where(jump, np.where(consistent, self._candidate_n + 1, 1), 0)
-        np.copyto(self._candidate, x, where=jump[:, None])
-        np.copyto(self._candidate_t, t, where=jump)
-        reacquire = jump & (self._candidate_n >= self.conf.reacquire_frames)
-        self._candidate_n[reacquire] = 0
-        self._candidates_pending = bool(self._candidate_n.any())
-        return reacquire
+    def _reacquires(self, k: int, t: float, x: Vec) -> bool:
+        """Point ``k``'s rejected measurement ``x`` at ``t`` extends its run of mutually consistent
+        rejected measurements (the same speed bound between consecutive ones) or starts one; True:
+        the run is ``reacquire_frames`` long, re-anchor the point there."""
+        bound = self.conf.max_speed * (t - self._candidate_t[k])
+        consistent = self._candidate_n[k] > 0 and _squared_distance(x, self._candidate[k]) <= bound * bound
+        count = self._candidate_n[k] + 1 if consistent else 1
+        self._candidate[k], self._candidate_t[k] = x, t
+        if count >= self.conf.reacquire_frames:
+            self._candidate_n[k] = 0
+            return True
+        self._candidate_n[k] = count
+        return False
 
 
-def _squared_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    diff = a - b
-    return np.einsum("ij,ij->i", diff, diff)
+def _squared_distance(a: Sequence[float], b: Sequence[float]) -> float:
+    d0, d1, d2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
+    return d0 * d0 + d1 * d1 + d2 * d2
