@@ -130,3 +130,23 @@ def test_theta_rate_is_validated_like_every_array() -> None:
     for bad in (np.full(8, np.nan), np.array([0.0] * 7 + [np.inf]), np.zeros(7), np.zeros((8, 1))):
         with pytest.raises(ValueError):
             type(message)(**{**fields, "theta_rate": bad})
+
+
+
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
+def test_a_non_finite_angle_difference_restarts_its_rate_instead_of_spreading(bad: float) -> None:
+    """θ̇ is always finite: an angle whose difference is not finite (an overflowing skeleton) gives
+    0 and restarts; the other angles go on as if it had been finite, and the next finite
+    differences move the restarted angle again."""
+    dt, valid, fresh = 1 / FPS, np.ones(8, bool), np.zeros(15, bool)
+    hit, clean = AngleRates(PoseAnglesConfig()), AngleRates(PoseAnglesConfig())
+    for k in range(3):
+        for rates in (hit, clean):
+            rates(k * dt, np.full(8, 0.1 * k), valid, fresh)
+    theta = np.full(8, 0.3)
+    out, expected = hit(3 * dt, np.where(np.arange(8) == 3, bad, theta), valid, fresh), clean(3 * dt, theta, valid, fresh)
+    assert np.isfinite(out).all() and out[3] == 0.0
+    np.testing.assert_array_equal(np.delete(out, 3), np.delete(expected, 3))
+    hit(4 * dt, np.full(8, 0.4), valid, fresh)
+    out = hit(5 * dt, np.full(8, 0.5), valid, fresh)
+    assert np.isfinite(out).all() and out[3] > 0.0
