@@ -332,8 +332,8 @@ class AngleRates:
         angles: list[float] = theta.tolist()
         steps = [now - before for now, before in zip(angles, self._theta)]
         usable = [now and before and math.isfinite(d) for now, before, d in zip(valid.tolist(), self._valid, steps)]
-        if fresh.any():
-            is_fresh: list[bool] = fresh.tolist()
+        is_fresh: list[bool] = fresh.tolist()
+        if True in is_fresh:
             usable = [use and not any(is_fresh[k] for k in uses) for use, uses in zip(usable, _ANGLE_KEYPOINT_LISTS)]
         if dt > 0.0 and any(usable):
             wrapped = [d - _TWO_PI * math.floor((d + math.pi) / _TWO_PI) if use else 0.0  # into [−π, π)

@@ -102,7 +102,7 @@ class PerceptionPipeline:
         c.reacquired = self.filter.reacquired
         c.filter_resets = self.filter.resets
         c.missing_points += N_KEYPOINTS - int(np.count_nonzero(filtered.valid))
-        if np.count_nonzero(theta_valid) + np.count_nonzero(capsule_valid) < len(theta_valid) + len(capsule_valid):
+        if not (theta_valid.all() and capsule_valid.all()):
             c.invalid_frames += 1
         return PerceptionResult(
             t=frame.t,

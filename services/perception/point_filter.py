@@ -175,32 +175,33 @@ class PointFilter:
         dt = 0.0 if self._t is None else t - self._t
         self._t = t
         hold_s, max_speed, min_confidence = conf.hold_s, conf.max_speed, conf.min_confidence
-        accepted, accepted_t = self._accepted, self._accepted_t
+        accepted, accepted_t, candidate_n = self._accepted, self._accepted_t, self._candidate_n
         n = self.n_points
         accept, fresh = [False] * n, [False] * n
         velocity: list[Vec | None] = [None] * n  # raw velocity of the points accepted with history
         for k, (x, c) in enumerate(zip(xyz.tolist(), confidence.tolist())):
+            x0, x1, x2 = x
             # A sum is finite iff all three coordinates are; a NaN confidence compares False.
-            if not (math.isfinite(x[0] + x[1] + x[2]) and c >= min_confidence):
-                self._candidate_n[k] = 0
+            if not (math.isfinite(x0 + x1 + x2) and c >= min_confidence):
+                candidate_n[k] = 0
                 continue
             since = t - accepted_t[k]
-            anchored = since <= hold_s
-            reacquire = False
-            if anchored and _squared_distance(x, accepted[k]) > (max_speed * since) ** 2:  # a jump
-                if not self._reacquires(k, t, x):
-                    self.rejected += 1
-                    continue
-                self.reacquired += 1
-                reacquire = True
+            if since <= hold_s:  # anchored: its last accepted measurement is recent
+                a0, a1, a2 = accepted[k]
+                d0, d1, d2 = x0 - a0, x1 - a1, x2 - a2
+                if d0 * d0 + d1 * d1 + d2 * d2 > (max_speed * since) ** 2:  # a jump
+                    if not self._reacquires(k, t, x):
+                        self.rejected += 1
+                        continue
+                    self.reacquired += 1
+                    fresh[k] = True
+                else:
+                    candidate_n[k] = 0
+                    velocity[k] = (d0 / since, d1 / since, d2 / since)
             else:
-                self._candidate_n[k] = 0
-            accept[k] = True
-            if not anchored or reacquire:
+                candidate_n[k] = 0
                 fresh[k] = True
-            else:
-                a, elapsed = accepted[k], t - accepted_t[k]
-                velocity[k] = ((x[0] - a[0]) / elapsed, (x[1] - a[1]) / elapsed, (x[2] - a[2]) / elapsed)
+            accept[k] = True
             accepted[k], accepted_t[k] = x, t  # x: this frame's own list
 
         # x̂ ← x where fresh, x̂ + α (x − x̂) where accepted with history, unchanged elsewhere.
