@@ -94,14 +94,16 @@ class PerceptionPipeline:
         theta, theta_valid = self.estimator(filtered.points, filtered.valid, frame.t)
         theta_rate = self.rates(frame.t, theta, theta_valid, filtered.fresh)
         capsules, capsule_valid, velocities = self.capsules(filtered)
-        keypoints = np.where(filtered.valid[:, None], filtered.points, 0.0)  # valid points are finite
+        all_valid = bool(filtered.valid.all())  # valid points are finite; the others are sent as 0
+        keypoints = filtered.points if all_valid else np.where(filtered.valid[:, None], filtered.points, 0.0)
 
         c = self.counters
         c.frames += 1
         c.rejected_jumps = self.filter.rejected
         c.reacquired = self.filter.reacquired
         c.filter_resets = self.filter.resets
-        c.missing_points += N_KEYPOINTS - int(np.count_nonzero(filtered.valid))
+        if not all_valid:
+            c.missing_points += N_KEYPOINTS - int(np.count_nonzero(filtered.valid))
         if not (theta_valid.all() and capsule_valid.all()):
             c.invalid_frames += 1
         return PerceptionResult(

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from itertools import chain
 from dataclasses import dataclass
 
 import numpy as np
@@ -214,7 +215,8 @@ class PointFilter:
                 e, x, g = estimate[k], accepted[k], alpha[k]
                 estimate[k] = (e[0] + g * (x[0] - e[0]), e[1] + g * (x[1] - e[1]), e[2] + g * (x[2] - e[2]))
         valid = [t - a <= hold_s for a in accepted_t]
-        return FilteredSkeleton(t=t, points=np.array(estimate), valid=np.array(valid), fresh=np.array(fresh))
+        points = np.fromiter(chain.from_iterable(estimate), np.float64, 3 * n).reshape(n, 3)
+        return FilteredSkeleton(t=t, points=points, valid=np.array(valid), fresh=np.array(fresh))
 
     def _reacquires(self, k: int, t: float, x: Vec) -> bool:
         """Point ``k``'s rejected measurement ``x`` at ``t`` extends its run of mutually consistent
