@@ -67,14 +67,13 @@ class RateFilter:
         channels not ``usable`` (n,) restart (class docstring). Returns a fresh array."""
         cutoff, beta, second_order = self.cutoff_hz, self.beta, self.second_order
         rate, previous, interval = self._rate, self._slope, self._interval
-        two_pi = 2.0 * math.pi  # lowpass_gain inlined below (its operations in its order)
         for i, (difference, use) in enumerate(zip(_as_list(step), _as_list(usable))):
             slope = difference / dt if use else 0.0
             omega = slope
             if second_order and interval[i] > 0.0:
                 omega += (slope - previous[i]) * (dt / (interval[i] + dt))
             r = rate[i]
-            r += 1.0 / (1.0 + 1.0 / (two_pi * (cutoff + beta * abs(r)) * dt)) * (omega - r)
+            r += lowpass_gain(dt, cutoff + beta * abs(r)) * (omega - r)
             previous[i] = slope
             rate[i], interval[i] = (r, dt) if use else (0.0, 0.0)
         return np.array(rate)

@@ -94,7 +94,6 @@ class _OneEuro:
             return [1.0] * len(velocity)
         conf, smoothed = self.conf, self._velocity
         a_d, min_cutoff, beta = lowpass_gain(dt, conf.d_cutoff_hz), conf.min_cutoff_hz, conf.beta
-        two_pi = 2.0 * math.pi  # lowpass_gain inlined below (its operations in its order)
         out = []
         for k, raw in enumerate(velocity):
             if fresh[k]:
@@ -104,8 +103,7 @@ class _OneEuro:
                 v = smoothed[k] = (s0 + a_d * (raw[0] - s0), s1 + a_d * (raw[1] - s1), s2 + a_d * (raw[2] - s2))
             else:
                 v = smoothed[k]
-            cutoff = min_cutoff + beta * math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-            out.append(1.0 / (1.0 + 1.0 / (two_pi * cutoff * dt)))
+            out.append(lowpass_gain(dt, min_cutoff + beta * math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])))
         return out
 
     def reset(self) -> None:
