@@ -432,9 +432,12 @@ class ExecutorConfig(_Section):
     command_timeout_s: float = Field(default=0.2, gt=0)
     viewer: bool = False
     joint_gains: dict[str, tuple[float, float]] = Field(
-        default_factory=lambda: {"waist_roll_joint": (300.0, 30.0), "waist_pitch_joint": (300.0, 30.0)},
+        default_factory=lambda: {"waist_roll_joint": (300.0, 30.0), "waist_pitch_joint": (300.0, 30.0),
+                                 "waist_yaw_joint": (500.0, 30.0)},
         description="per-joint (kp, kd) overriding kp/kd or hold_kp/hold_kd; the waist carries the whole "
-        "upper body (≈ 0.9 kg·m² in roll), so kd = 5 would leave it badly underdamped",
+        "upper body (at home 0.90 kg·m² in roll, 0.56 in pitch, 0.38 in yaw), so kd = 5 (imitated roll, pitch) or "
+        "hold_kd = 10 (held yaw: damping ratio 0.36) would leave it ringing; these damp every waist servo about "
+        "critically (ratio 0.91–1.16)",
     )
     hold_kp: float = Field(default=500.0, gt=0, description="servo stiffness of the joints held at home (N·m/rad)")
     hold_kd: float = Field(default=10.0, ge=0, description="servo damping of the joints held at home (N·m·s/rad)")
