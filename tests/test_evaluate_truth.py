@@ -298,7 +298,11 @@ def test_the_commanded_closing_speed_is_the_contact_point_velocity_along_the_nor
 def test_a_servo_settling_on_a_still_command_is_robot_caused_but_not_commanded() -> None:
     """The command jumps into the person and then stays (u* = 0): the servo moves the forearm
     into it, which the contact count blames on the robot, and the commanded speed says the
-    command did not; driven with the matching velocity, both agree."""
+    command did not; driven with the matching velocity, both agree: every step with a contact the
+    robot closes has one the command closes too (the evaluator's ``robot_caused_commanded``). A
+    single contact need not: a second geom of the wrist grazing the person at a constant depth
+    closes at 1.9 mm/s while the command's share there is 0.9 mm/s, the rest the joints held at
+    home yielding to the arm's acceleration."""
     sim = SimRobot(OURS, GAINS)
     endpoints, _ = RobotKinematics(OURS).compute(sim.q_home)
     forearm = endpoints[CAPSULE_NAMES.index("left_forearm")].mean(axis=0)
@@ -324,8 +328,9 @@ def test_a_servo_settling_on_a_still_command_is_robot_caused_but_not_commanded()
         moving = moving + forward * sim.timestep
         sim.set_command(moving, forward)
         sim.step()
-        commanded += [sim.commanded_closing_speed(c, forward) for c in sim.surface_contacts()
-                      if c.closing_speed > CLOSING_SPEED]
+        closing = [c for c in sim.surface_contacts() if c.closing_speed > CLOSING_SPEED]
+        if closing:
+            commanded.append(max(sim.commanded_closing_speed(c, forward) for c in closing))
     assert commanded and min(commanded) > CLOSING_SPEED
 
 
