@@ -301,8 +301,8 @@ def test_a_servo_settling_on_a_still_command_is_robot_caused_but_not_commanded()
     command did not; driven with the matching velocity, both agree: every step with a contact the
     robot closes has one the command closes too (the evaluator's ``robot_caused_commanded``). A
     single contact need not: a second geom of the wrist grazing the person at a constant depth
-    closes at 1.9 mm/s while the command's share there is 0.9 mm/s, the rest the joints held at
-    home yielding to the arm's acceleration."""
+    closes at 1.9 mm/s while the command's share there is 0.9 mm/s (the shoulder's servo still
+    swinging past the command, 1.19 rad/s against 1.0, and the joints held at home yielding)."""
     sim = SimRobot(OURS, GAINS)
     endpoints, _ = RobotKinematics(OURS).compute(sim.q_home)
     forearm = endpoints[CAPSULE_NAMES.index("left_forearm")].mean(axis=0)
