@@ -6,6 +6,7 @@ pelvis, which MuJoCo's own contact list never reports)."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Iterator
 
 import mujoco
 import numpy as np
@@ -174,24 +175,17 @@ def test_the_held_waist_yaw_comes_back_from_the_arms_reaction_without_swinging_p
     arm pulled back) and brake to rest at the arms' acceleration bound (60 rad/s²). The waist yaw,
     held at home, takes the reaction; once the arms are at rest it returns without swinging past
     home by more than 15 % of its deflection (measured: 11 %; 38 % at the old hold_kd 10)."""
-    sim.reset()
-    model = sim.model
-    yaw = model.jnt_qposadr[model.joint("waist_yaw_joint").id]
+    yaw = sim.model.jnt_qposadr[sim.model.joint("waist_yaw_joint").id]
     home = sim.data.qpos[yaw]
     pitch = [sim.joint_names.index(j) for j in ("left_shoulder_pitch_joint", "right_shoulder_pitch_joint")]
-    dt, q, u = sim.timestep, sim.q_home.copy(), np.zeros(8)
-    deflection = []
-    for k in range(round(0.8 / dt)):
+
+    def swing(t: float) -> np.ndarray:
         accel = np.zeros(8)
-        accel[pitch] = np.array([1.0, -1.0]) * (60.0 if k * dt < 0.1 else -60.0 if k * dt < 0.2 else 0.0)
-        u_next = u + accel * dt
-        q = q + u_next * dt
-        sim.set_command(q, u_next, (u_next - u) / dt)
-        u = u_next
-        sim.step()
-        deflection.append(sim.data.qpos[yaw] - home)
-    deflection = np.array(deflection)
-    at_rest = deflection[round(0.2 / dt):]
+        accel[pitch] = np.array([1.0, -1.0]) * (60.0 if t < 0.1 else -60.0 if t < 0.2 else 0.0)
+        return accel
+
+    deflection = np.array([sim.data.qpos[yaw] - home for _ in _drive(sim, swing, 0.8)])
+    at_rest = deflection[round(0.2 / sim.timestep):]
     sign = np.sign(deflection[np.argmax(np.abs(deflection))])
     assert np.abs(deflection).max() > 3e-4, "the swing was expected to deflect the held yaw"
     assert (sign * at_rest).min() > -0.15 * np.abs(deflection).max(), (np.abs(deflection).max(), (sign * at_rest).min())
@@ -200,20 +194,29 @@ def test_the_held_waist_yaw_comes_back_from_the_arms_reaction_without_swinging_p
 def _track_bang_bang(sim: SimRobot, lead: bool) -> float:
     """Max |q − q_ref| of the right shoulder pitch at the end of each period, over 0.8 s of a
     command accelerating at ±60 rad/s² (the default accel_max of the arms), q_ref = q_cbf⁺."""
-    sim.reset()
     j = sim.joint_names.index("right_shoulder_pitch_joint")
-    dt, q, u, worst = sim.timestep, sim.q_home.copy(), np.zeros(8), 0.0
-    for k in range(round(0.8 / dt)):
-        phase = (k * dt) % 0.4
+
+    def bang_bang(t: float) -> np.ndarray:
         accel = np.zeros(8)
-        accel[j] = 60.0 if phase < 0.1 or phase >= 0.3 else -60.0
-        u_next = u + accel * dt
+        accel[j] = 60.0 if t % 0.4 < 0.1 or t % 0.4 >= 0.3 else -60.0
+        return accel
+
+    return max(abs(sim.q[j] - q[j]) for q in _drive(sim, bang_bang, 0.8, lead))
+
+
+def _drive(sim: SimRobot, accel: Callable[[float], np.ndarray], seconds: float, lead: bool = False) -> Iterator[np.ndarray]:
+    """From rest at home, command the joints along u̇ = ``accel(t)`` (8,) rad/s² for ``seconds``: each
+    step sends q_cbf⁺ (the end of its period, with u* and u̇; ``lead``: the servos follow the command
+    over the period) and steps the simulation; yields the commanded q (8,) after each step."""
+    sim.reset()
+    dt, q, u = sim.timestep, sim.q_home.copy(), np.zeros(8)
+    for k in range(round(seconds / dt)):
+        u_next = u + accel(k * dt) * dt
         q = q + u_next * dt
         sim.set_command(q, u_next, (u_next - u) / dt, lead_s=dt if lead else 0.0)
         u = u_next
         sim.step()
-        worst = max(worst, abs(sim.q[j] - q[j]))
-    return worst
+        yield q
 
 
 def test_servos_follow_the_command_over_its_period_not_ahead_of_it(sim: SimRobot) -> None:
