@@ -274,7 +274,7 @@ class SafetyConfig(_Section):
         "frame held 0.033, how old the measured position is when the robot acts on it (the point filter's lag is "
         "in human_lookahead_s). Axis moved by v·τ/2, radius + max|v|·τ/2, so a noisy velocity only makes the rows "
         "more cautious; the intrusion stop still needs the measured capsule inside. 0: as measured (the paper). "
-        "README 'Sweeping the person ahead'",
+        "docs/safety-measurements.md 'Sweeping the person ahead'",
     )
     on_intrusion: IntrusionResponse = Field(
         default=IntrusionResponse.STOP,
@@ -283,7 +283,7 @@ class SafetyConfig(_Section):
         "bound, never closer to any person capsule, no retreat demanded, imitation resumes once no person row is "
         "inside) or retreat (the CBF's own answer: every violated row demands A u ≥ −γ h, the least total violation "
         "first, then the target is rest). Measured: the robot closes 2.4–5× less distance into the true person in contact, at 11–30 % "
-        "more contact steps, which are the person's: README 'The intrusion stop'. stop_on_give_way: the same stop "
+        "more contact steps, which are the person's: docs/safety-measurements.md 'The intrusion stop'. stop_on_give_way: the same stop "
         "also whenever the person rows cannot all be honoured (a person moving in faster than the robot can "
         "retreat): the robot never dodges; on the test variants of the recordings 93 % fewer robot-caused contact "
         "steps, but a person's arm sweeping past meets a robot that stands still (the paper's side-by-side arm raise: "
@@ -294,7 +294,7 @@ class SafetyConfig(_Section):
         description="during the intrusion stop, while the person stands still (seen to move slower than 0.15 m/s "
         "over up to the last second, at least 0.5 s, which a camera's noise averages out; none held from memory or just appeared) inside the "
         "margins of the robot's arms only, each arm backs out of the person capsules it holds at up to this speed (m/s, along the pair's normal) until none is inside: a person who "
-        "stands in an arm's margin does not freeze the robot there. 0: it stands still until they leave. README "
+        "stands in an arm's margin does not freeze the robot there. 0: it stands still until they leave. docs/safety-measurements.md "
         "'Backing out from a person who stands inside'",
     )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)

@@ -157,7 +157,7 @@ def test_every_waist_servo_is_about_critically_damped(sim: SimRobot) -> None:
     armature included), is at least 0.9 for the imitated roll and pitch and for the yaw held at
     home (measured: roll 0.91, pitch 1.16, yaw 1.09). At ``hold_kd`` = 10 the held yaw had ζ 0.36:
     the arms' reaction rang it, and a robot at rest kept turning its forearm into a person at
-    1–3 mm/s (README "The held waist yaw")."""
+    1–3 mm/s (docs/safety-measurements.md "The held waist yaw")."""
     model, data = sim.model, mujoco.MjData(sim.model)
     data.qpos[:] = sim.data.qpos  # home
     mujoco.mj_forward(model, data)

@@ -39,7 +39,7 @@ servos trailed by 0.19 rad, 11 mm deeper into the robot's own margin at its join
 command. A protective stop decided from the rows brakes within the bound ×2 (the motors' full
 torque; :mod:`services.safety.protective_stop`) when its rows allow; its relaxed solve, where they
 do not, tries the boxes above from ×1 as any step (braking every relaxed step at full torque left
-the servos trailing: measured in the README). ``ddq`` = (u* − u_prev)/Δt is the command's
+the servos trailing: measured in docs/safety-measurements.md). ``ddq`` = (u* − u_prev)/Δt is the command's
 acceleration (the executor's inertial feed-forward). After :meth:`SafetyFilter.reset` there is no
 u_prev and no bound for one step.
 
@@ -74,8 +74,8 @@ robot than the hair at q_cbf:
    protective stop instead of continuing its task. Why: the imitation target is then typically
    radians away (the person blocks it), so u_ref asks for the velocity bounds, and the freedom the
    rows leave (directions tangential to the perceived capsules, the other arm) swept the robot's
-   links at full speed past a person known only as they were a camera latency earlier (README
-   "The delay-aware look-ahead, and what still fails"). With ``on_intrusion =
+   links at full speed past a person known only as they were a camera latency earlier (docs/safety-measurements.md
+   "How the evaluator found its way to no robot-caused step on the development set"). With ``on_intrusion =
    "stop_on_give_way"`` (opt-in) it does not retreat either: both stages are solved again with
    every robot–person row at its floor, b_i ← min(b_i, 0), aiming at ū, so the robot brakes to
    rest within the acceleration bound and closes on no perceived capsule (the slacks reported are
@@ -83,7 +83,7 @@ robot than the hair at q_cbf:
    give is a fast motion along normals of capsules seen a camera latency ago that moves the
    robot's other surfaces with it; a robot that never retreats is instead walked and swung into,
    and with a noisy camera its servos creep into the person, so it is not the default (measured:
-   README "The intrusion stop"). Only stage 2's objective changes, so the feasibility argument
+   docs/safety-measurements.md "The intrusion stop"). Only stage 2's objective changes, so the feasibility argument
    below is unchanged.
 
 **Protective stops** (:mod:`services.safety.protective_stop`, ISO/TS 15066 speed and separation

@@ -43,9 +43,9 @@ computed on the capsule as the camera showed it, for the rows the swept one puts
 only expected to come in is kept out by the (swept) rows, not met by a robot standing still. (The
 bound h_swept + 2·sweep this test once used read a forearm measured 6 cm inside as outside while
 it punched at metres per second, and the relaxed step retreated along the rows of a person a
-latency old, into where they were: README "A stop brakes with the motors' full torque, on the
+latency old, into where they were: docs/safety-measurements.md "A stop brakes with the motors' full torque, on the
 person as measured".) Like the stop above it
-only lowers soft rows' b, so the feasibility argument is unchanged. Measured (README "The
+only lowers soft rows' b, so the feasibility argument is unchanged. Measured (docs/safety-measurements.md "The
 intrusion stop"): the distance the robot closed into the true person 2.4–5× smaller in contact and
 1.7–3.5× within φ, at 11–30 % more contact steps, which are the person's.
 
@@ -61,7 +61,7 @@ across a forearm still braking from 3 rad/s, a waist braking from 0.9 rad/s over
 rows are infeasible together the relaxed solve tries its boxes from ×1, as any step (braking every
 relaxed step that hard left the servos trailing their command). Only the box widens, within what
 the motors give; the rows and their floors are those of the step, so the feasibility argument
-holds as it is. Measured (README "A stop brakes with the motors' full torque, on the person as
+holds as it is. Measured (docs/safety-measurements.md "A stop brakes with the motors' full torque, on the person as
 measured"): on the test variants, with the measured intrusion above, robot-caused contact steps
 192 (158 commanded) → 155 (111), on the noisy camera 51 (27) → 44 (9), at 1–15 % more contacts
 (the person meeting a robot that stands still sooner).
@@ -92,9 +92,9 @@ is walking into the robot (on the test variants a person stepping slowly in was 
 1,198 robot-caused contact steps); backing out of a person inside the torso's margin leans the
 torso, whose mesh meets them where its capsule's closest point is not closing (the same person
 stepping in: 284). The back-out rows are lowered, never raised (min(b_i, c) ≤ b_i), and their
-relaxation floor stays min(b_i, 0) = 0, so the feasibility argument holds as it is. Measured (README "Backing
-out from a person who stands inside"): a broad person (shoulders 0.37 m) dancing beside the robot,
-4,113 contact steps → 138, none robot-caused.
+relaxation floor stays min(b_i, 0) = 0, so the feasibility argument holds as it is. Measured
+(docs/safety-measurements.md "Backing out from a person who stands inside"): a broad person
+(shoulders 0.37 m) dancing beside the robot, 4,113 contact steps → 138, none robot-caused.
 
 **The stop holds the robot where it is.** A servo tracks q_cbf with a lag: braking within the
 acceleration bound leaves the joints 1–20 mrad behind the command, and once the command is at rest
@@ -114,7 +114,7 @@ it). Twice per run of steps aiming at rest at most, and never while imitating: a
 steady error (gravity it does not compensate) would sag by that error at every settle, and a command at rest during imitation
 (a still person, K (q_nom − q_cbf) decayed to nothing) settling onto a servo stuck within its
 friction would start a slow cycle. A missing or non-finite ``q_robot`` settles nothing. Measured
-(README "The stop holds the robot where it is"): with a noisy camera robot-caused contact steps
+(docs/safety-measurements.md "The stop holds the robot where it is"): with a noisy camera robot-caused contact steps
 289 → 51 and approach steps 298 → 78 over three seeds. Every row is evaluated at the settled
 pose, so the feasibility argument holds there as it is (a hard row the few mrad carried past its
 boundary, which the self margin makes unlikely, is a violated one and softened as such).
