@@ -41,10 +41,9 @@ from safemimic.evaluate.goals import goal_report
 #: The settings whose difference makes two suites measure different inputs.
 SETTINGS = ("latency_ms", "latency_jitter_ms", "depth_noise_m", "dropout", "dropout_frames", "seed", "robot_model",
             "seconds")
-
-
-#: What a run's ``input`` records about the run itself rather than the stack's parameters.
-_PER_RUN = frozenset({"source", "placement", "frames", "fps", "seconds", "control_steps", "free_steps"})
+#: What a run's ``input`` records about the run itself (or the suite's inputs, :data:`SETTINGS`) rather
+#: than the stack's parameters.
+_PER_RUN = frozenset({"source", "placement", "frames", "fps", "control_steps", "free_steps", *SETTINGS})
 
 
 class CompareError(ValueError):
