@@ -20,9 +20,8 @@ import pytest
 
 from safemimic.evaluate.compare import METRICS, Comparison, CompareError, load_summary, worse
 from safemimic.evaluate.metrics import RUN_KEYS
+from tests.support.team import MOCAP_DIR, REPO
 
-REPO = Path(__file__).resolve().parent.parent
-MOCAP_DIR = Path(os.environ.get("SAFEMIMIC_MOCAP_DIR", REPO.parent / "shared" / "data" / "mocap"))
 CLIP = MOCAP_DIR / "bandai2_raise_up_both_hands.npz"
 
 

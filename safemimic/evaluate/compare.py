@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from safemimic.evaluate.goals import goal_report
+from shared.errors import SafemimicError
 
 #: The settings whose difference makes two suites measure different inputs.
 SETTINGS = ("latency_ms", "latency_jitter_ms", "depth_noise_m", "dropout", "dropout_frames", "seed", "robot_model",
@@ -46,7 +47,7 @@ SETTINGS = ("latency_ms", "latency_jitter_ms", "depth_noise_m", "dropout", "drop
 _PER_RUN = frozenset({"source", "placement", "frames", "fps", "control_steps", "free_steps", *SETTINGS})
 
 
-class CompareError(ValueError):
+class CompareError(SafemimicError, ValueError):
     """A suite that cannot be compared (missing, not a suite, unreadable): its path and why."""
 
 
