@@ -32,13 +32,14 @@ def safemimic(*args: str, env: dict[str, str] | None = None) -> subprocess.Compl
 
 def test_two_real_suites_compare_with_the_parameter_that_changed(tmp_path: Path) -> None:
     """The evaluator's own summaries: a suite against itself has no change; against the same clip
-    evaluated without the person's sweep, the report names the parameter and the runs that changed."""
+    evaluated with another look-ahead and without the person's sweep, the report names both."""
     if not CLIP.is_file():
         pytest.skip(f"motion capture clip not found: {CLIP}")
     clips = tmp_path / "clips"
     clips.mkdir()
     (clips / CLIP.name).symlink_to(CLIP)
-    for name, env in (("before", {}), ("after", {"SAFEMIMIC__SAFETY__HUMAN_PREDICT_S": "0"})):
+    after = {"SAFEMIMIC__SAFETY__HUMAN_PREDICT_S": "0", "SAFEMIMIC__SAFETY__HUMAN_LOOKAHEAD_S": "0.2"}
+    for name, env in (("before", {}), ("after", after)):
         done = safemimic("evaluate", "--suite", str(clips), "--seconds", "2", "--jobs", "2", "--quiet",
                          "--out", str(tmp_path / name), env=env)
         assert done.returncode == 0, done.stderr
@@ -53,7 +54,7 @@ def test_two_real_suites_compare_with_the_parameter_that_changed(tmp_path: Path)
                      "--out", str(report))
     assert done.returncode == 0, done.stderr
     assert report.read_text() == done.stdout
-    assert "human_predict_s 0.093 → 0.0" in done.stdout  # what differs between the two stacks
+    assert "human_lookahead_s 0.11 → 0.2; human_predict_s 0.093 → 0.0." in done.stdout  # what differs between the stacks
     assert "The two suites were evaluated on different inputs" not in done.stdout
     rows = [line for line in done.stdout.splitlines() if line.startswith(f"| {CLIP.stem} |")]
     assert len(rows) == 2  # --all: both placements

@@ -11,7 +11,8 @@ standard output; ``--out`` also writes it):
 
 - the settings of both suites, with a warning where they differ (latency, noise, dropout, seed,
   robot model): a change is only measured on the same inputs; and the stack parameters each run
-  records (its ``input``: γ, φ, K, the person's sweep, the intrusion policy …) that differ;
+  records (its ``input``: γ, φ, K, the look-ahead, the sweep, the margins, feed-forward, the
+  target path, the intrusion policy, the retargeting method, the point filter) that differ;
 - the figures over the CBF runs both evaluated (:data:`METRICS`: true contacts, robot-caused and
   approach steps with their commanded share, robot–robot contacts, the worst min self h at the
   simulated joints, NaN and hold steps, the median lag, ``rms_true_free`` summed), before → after;
@@ -227,8 +228,8 @@ class Comparison:
         return lines + [""]
 
     def changed_parameters(self) -> dict[str, tuple[Any, Any]]:
-        """The stack's parameters each run records (``input``: γ, φ, K, the person's sweep, the
-        intrusion policy …) whose value differs between the suites, on the first common run."""
+        """The stack's parameters each run records (``input``, :func:`~safemimic.evaluate.metrics.input_metrics`)
+        whose value differs between the suites, on the first common run."""
         first = self.common[0]
         b, a = self.runs_before[first].get("input", {}), self.runs_after[first].get("input", {})
         return {n: (b.get(n), a.get(n)) for n in sorted(b.keys() | a.keys())

@@ -80,7 +80,7 @@ from safemimic.evaluate.fidelity import direction_errors, fidelity
 from safemimic.evaluate.person import CameraModel, HumanTrack, TruePerson
 from safemimic.evaluate.source import EvaluationInput
 from safemimic.evaluate.truth import CLOSING_SPEED
-from shared.config import IntrusionResponse, StackConfig
+from shared.config import IntrusionResponse, PointFilterKind, RetargetMethod, StackConfig, TargetPath
 from shared.messages import SafetyMode
 
 RUN_KEYS: tuple[str, ...] = (
@@ -215,7 +215,14 @@ def input_metrics(
         "phi": s.phi,
         "gain": s.gain,
         "human_velocity_term": s.human_velocity_term,
+        "human_lookahead_s": s.human_lookahead_s,
         "human_predict_s": s.human_predict_s,
+        "human_margin": s.human_margin,
+        "self_margin": s.self_margin,
+        "feedforward": s.feedforward,
+        "target_path": TargetPath(s.target_path).value,
+        "retargeting": RetargetMethod(conf.retargeting.method).value,
+        "point_filter": PointFilterKind(conf.perception.point_filter.kind).value,
         "on_intrusion": IntrusionResponse(s.on_intrusion).value,
         "intrusion_backout_mps": s.intrusion_backout_mps,
         **camera.settings(),
