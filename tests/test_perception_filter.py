@@ -7,10 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from services.perception.angles import AngleRates, PoseEstimator
 from services.perception.capsules import HumanCapsules
 from shared.body import capsule_radii
 from services.perception.pipeline import PerceptionPipeline
-from services.perception.point_filter import PointFilter
+from services.perception.point_filter import FilteredSkeleton, PointFilter
 from services.perception.base import SkeletonFrame
 from services.perception.synthetic import skeleton
 from shared.config import HumanConfig, PerceptionConfig, PointFilterConfig
@@ -180,6 +181,82 @@ def test_capsules_follow_the_skeleton_with_configured_radii() -> None:
     capsules, valid, _ = builder(PointFilter(PointFilterConfig(), 15)(0.0, points, confidence))
     np.testing.assert_allclose(capsules[C["torso"], 1], points[[K["left_shoulder"], K["right_shoulder"]]].mean(axis=0))
     assert valid[C["torso"]] and not valid[C["left_thigh"]] and valid[C["right_thigh"]]
+
+
+def test_an_invalid_capsule_keeps_its_last_endpoints_without_velocity() -> None:
+    """Zeros before its first valid frame; then the last valid endpoints, velocity 0, while the
+    other capsules follow the skeleton with finite-difference velocities."""
+    builder = HumanCapsules(HumanConfig())
+    thigh, knee, every, none = C["left_thigh"], K["left_knee"], np.ones(15, bool), np.zeros(15, bool)
+    without_knee = every.copy()
+    without_knee[knee] = False
+    unseen = pose()
+    unseen[knee] = np.nan  # a point never seen is NaN in the filter's output
+    capsules, valid, velocities = builder(FilteredSkeleton(0.0, unseen, without_knee, without_knee))
+    assert not valid[thigh] and valid.sum() == 6 and (capsules[thigh] == 0).all() and (velocities == 0).all()
+
+    seen = builder(FilteredSkeleton(DT, pose(), every, none))[0]
+    moved = pose() + (0.03, 0.0, 0.0)
+    capsules, valid, velocities = builder(FilteredSkeleton(2 * DT, moved, without_knee, none))
+    assert not valid[thigh] and valid.sum() == 6
+    np.testing.assert_array_equal(capsules[thigh], seen[thigh])
+    assert (velocities[thigh] == 0).all()
+    others = np.arange(7) != thigh
+    np.testing.assert_allclose(capsules[others], seen[others] + (0.03, 0.0, 0.0), atol=1e-12)
+    np.testing.assert_allclose(velocities[others], np.broadcast_to((0.03 / DT, 0.0, 0.0), velocities[others].shape),
+                               atol=1e-9)
+
+
+@pytest.mark.parametrize("estimator", ["continuous", "paper"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_pipeline_is_its_stages_one_after_the_other(kind: str, estimator: str) -> None:
+    """``step`` hands the stages Python lists: it gives what their array calls give, on noisy
+    frames with dropouts, NaN, outliers and replay restarts (every stage resets with the filter)."""
+    conf = PerceptionConfig(point_filter={"kind": kind}, angles={"estimator": estimator})
+    pipeline = PerceptionPipeline(conf, HumanConfig())
+    filt, angles = PointFilter(conf.point_filter, 15), PoseEstimator(conf.angles)
+    rates, builder = AngleRates(conf.angles), HumanCapsules(HumanConfig())
+    rng = np.random.default_rng(7)
+    missing = invalid_frames = 0
+    for i in range(240):
+        phase = i % 90 + 40 * (i // 90)  # a replay restarting elsewhere every 90 frames
+        true_theta = [0.1, 0.0, 0.4 + 2.5 * math.sin(phase / 20), 1.2 + math.cos(phase / 15), 0.5, 0.3, 0.2, 0.9]
+        xyz = skeleton(np.array(true_theta)) + rng.normal(scale=0.003, size=(15, 3))
+        confidence = np.ones(15)
+        if i % 7 == 3:
+            confidence[rng.integers(15, size=2)] = 0.0
+        if i % 11 == 5:
+            xyz[rng.integers(15)] = np.nan
+        if i % 13 == 6:
+            xyz[rng.integers(15)] += 0.5  # an outlier
+        if 30 <= i < 40:
+            xyz[K["right_elbow"]] += 1.5  # moved for good: re-anchored (fresh) after a few frames
+        if 100 <= i < 120:
+            xyz[WRIST] = np.nan  # lost beyond the hold
+        frame = SkeletonFrame(t=i * DT, xyz=xyz, conf=confidence, captured=0.0, discontinuity=i in (90, 180))
+        got = pipeline.step(frame)
+
+        resets = filt.resets
+        filtered = filt(frame.t, frame.xyz, frame.conf, frame.discontinuity)
+        if filt.resets != resets:
+            angles.reset()
+            rates.reset()
+            builder.reset()
+        theta, theta_valid = angles(filtered.points, filtered.valid, frame.t)
+        capsules, capsule_valid, velocities = builder(filtered)
+        expected = {
+            "keypoints": np.where(filtered.valid[:, None], filtered.points, 0.0), "keypoint_valid": filtered.valid,
+            "theta": theta, "theta_valid": theta_valid, "theta_rate": rates(frame.t, theta, theta_valid, filtered.fresh),
+            "capsules": capsules, "capsule_valid": capsule_valid, "capsule_velocities": velocities,
+        }
+        for name, value in expected.items():
+            np.testing.assert_array_equal(getattr(got, name), value, err_msg=f"{name}, frame {i}")
+        missing += int((~filtered.valid).sum())
+        invalid_frames += not (theta_valid.all() and capsule_valid.all())
+    counters = pipeline.counters
+    assert counters.frames == 240 and counters.filter_resets == filt.resets == 2
+    assert counters.rejected_jumps == filt.rejected > 0 and counters.reacquired == filt.reacquired > 0
+    assert counters.missing_points == missing > 0 and counters.invalid_frames == invalid_frames > 0
 
 
 # --- the One Euro filter (Casiez, Roussel, Vogel, CHI 2012) --------------------------------------

@@ -95,7 +95,6 @@ its last valid value (0 before the first); no output is ever NaN.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -143,18 +142,6 @@ def torso_roll_pitch(axes: tuple[Vec, Vec, Vec]) -> tuple[float, float]:
     return math.atan2(k_x, k_z), math.atan2(-k_y, k_z)
 
 
-@dataclass
-class _ArmGeometry:
-    """One arm in torso coordinates: unit upper-arm (outward, forward, down) and the elbow angle."""
-
-    ok: bool  # shoulder angles computable
-    o: float = 0.0
-    f: float = 0.0
-    d: float = 1.0
-    elbow_ok: bool = False
-    elbow: float = 0.0
-
-
 class PoseEstimator:
     """θ from one skeleton per call; ``paper`` or ``continuous`` shoulder angles (module docstring).
 
@@ -167,8 +154,8 @@ class PoseEstimator:
         self.configure(conf)
         self._theta = [0.0] * N_ANGLES  # the last valid value of each angle (held while invalid)
         self._history = [False, False]  # per arm: previous pitch/roll usable for branch tracking
-        self._tracked = [[0.0, 0.0], [0.0, 0.0]]  # per arm: the chain's (pitch, roll) before spreading
-        self._offset = [[0.0, 0.0], [0.0, 0.0]]  # per arm: output − tracked, decaying to 0 (step 3)
+        self._tracked = [(0.0, 0.0), (0.0, 0.0)]  # per arm: the chain's (pitch, roll) before spreading
+        self._offset = [(0.0, 0.0), (0.0, 0.0)]  # per arm: output − tracked, decaying to 0 (step 3)
         self._t: float | None = None
 
     def configure(self, conf: PoseAnglesConfig) -> None:
@@ -183,10 +170,13 @@ class PoseEstimator:
 
     def __call__(self, xyz: np.ndarray, valid: np.ndarray, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """θ, θ_valid of one frame; ``t`` (s) paces the branch-switch spreading (None: frames 1/30 s apart)."""
+        theta, ok = self.estimate(xyz.tolist(), valid.tolist(), t)
+        return np.array(theta), np.array(ok)
+
+    def estimate(self, points: list[Vec], present: list[bool], t: float | None = None) -> tuple[list[float], list[bool]]:
+        """:meth:`__call__` on Python lists (15 points (x, y, z), 15 flags): θ, θ_valid as new lists."""
         dt = NOMINAL_FRAME_S if t is None or self._t is None else max(0.0, t - self._t)
         self._t = t
-        points: list[Vec] = xyz.tolist()
-        present: list[bool] = valid.tolist()
         theta, ok = self._theta, [False] * N_ANGLES
         axes = None
         if present[_PELVIS] and present[_L_SHOULDER] and present[_R_SHOULDER]:
@@ -195,57 +185,60 @@ class PoseEstimator:
             theta[0], theta[1] = torso_roll_pitch(axes)
             ok[0] = ok[1] = True
         for arm, (sign, shoulder, elbow, wrist, first) in enumerate(_ARMS):
-            geometry = self._arm_geometry(points, present, axes, sign, shoulder, elbow, wrist)
-            if geometry.elbow_ok:
-                theta[first + 2] = geometry.elbow
+            upper, elbow_angle = self._arm_geometry(points, present, axes, sign, shoulder, elbow, wrist)
+            if elbow_angle is not None:
+                theta[first + 2] = elbow_angle
                 ok[first + 2] = True
-            if not geometry.ok:
+            if upper is None:
                 self._history[arm] = False
                 continue
             if self.continuous:
-                pitch, roll = self._spread(arm, self._continuous(arm, geometry), dt)
+                pitch, roll = self._spread(arm, self._continuous(arm, upper), dt)
             else:
-                pitch, roll = math.atan2(geometry.f, geometry.d), math.atan2(geometry.o, geometry.d)
+                o, f, d = upper
+                pitch, roll = math.atan2(f, d), math.atan2(o, d)
             theta[first], theta[first + 1] = pitch, roll
             ok[first] = ok[first + 1] = True
             self._history[arm] = True
-        return np.array(theta), np.array(ok)
+        return theta[:], ok
 
     def _arm_geometry(
         self, points: list[Vec], present: list[bool], axes: tuple[Vec, Vec, Vec] | None,
         sign: float, shoulder: int, elbow: int, wrist: int,
-    ) -> _ArmGeometry:
+    ) -> tuple[Vec | None, float | None]:
+        """One arm: its unit upper arm (o, f', d) (outward, forward, down) in torso coordinates and
+        its elbow angle; None where not computable (validity: module docstring)."""
         min_segment = self.conf.min_segment
         if not (present[shoulder] and present[elbow]):
-            return _ArmGeometry(ok=False)
+            return None, None
         upper = _sub(points[elbow], points[shoulder])
         upper_len = _norm(upper)
         if not upper_len >= min_segment:
-            return _ArmGeometry(ok=False)
-        geometry = _ArmGeometry(ok=axes is not None)
+            return None, None
+        elbow_angle = None
         if present[wrist]:
             fore = _sub(points[wrist], points[elbow])
             fore_len = _norm(fore)
             if fore_len >= min_segment:
                 cosine = _dot(upper, fore) / (upper_len * fore_len)
-                geometry.elbow = math.acos(min(1.0, max(-1.0, cosine)))
-                geometry.elbow_ok = True
-        if axes is not None:
-            e_x, e_y, e_z = axes
-            geometry.o = sign * _dot(e_x, upper) / upper_len
-            geometry.f = _dot(e_y, upper) / upper_len
-            geometry.d = -_dot(e_z, upper) / upper_len
-        return geometry
+                elbow_angle = math.acos(min(1.0, max(-1.0, cosine)))
+        if axes is None:
+            return None, elbow_angle
+        e_x, e_y, e_z = axes
+        direction = (sign * _dot(e_x, upper) / upper_len, _dot(e_y, upper) / upper_len, -_dot(e_z, upper) / upper_len)
+        return direction, elbow_angle
 
-    def _continuous(self, arm: int, g: _ArmGeometry) -> tuple[float, float]:
-        """Steps 1–2 of the module docstring: the tracked (pitch, roll), each in [seam − 2π, seam)."""
+    def _continuous(self, arm: int, upper: Vec) -> tuple[float, float]:
+        """Steps 1–2 of the module docstring: the tracked (pitch, roll) of the unit upper arm
+        ``upper`` = (o, f', d), each in [seam − 2π, seam)."""
+        o, f, d = upper
         zone, seam = self.conf.paper_zone, self.conf.seam
-        measured = math.atan2(g.f, g.d)
+        measured = math.atan2(f, d)
         history = self._history[arm]
         pitch_prev = self._tracked[arm][0]
         observability = self.conf.pitch_observability
-        s = math.hypot(g.f, g.d)
-        if g.d >= zone:
+        s = math.hypot(f, d)
+        if d >= zone:
             pitch = measured
         elif not history:  # fresh start: the |roll| ≤ π/2 branch, untwisted where pitch is unobservable
             pitch = measured
@@ -255,32 +248,32 @@ class PoseEstimator:
             gain = 1.0 if s >= observability else s / observability
             pitch = pitch_prev + gain * wrap_pi(measured - pitch_prev)
         pitch = wrap_seam(pitch, seam)
-        blend = smoothstep((zone - g.d) / zone)
+        blend = smoothstep((zone - d) / zone)
         if blend == 0.0:
-            return pitch, math.atan2(g.o, g.d)
+            return pitch, math.atan2(o, d)
         q = blend * pitch
-        return pitch, wrap_seam(math.atan2(g.o, g.f * math.sin(q) + g.d * math.cos(q)), seam)
+        return pitch, wrap_seam(math.atan2(o, f * math.sin(q) + d * math.cos(q)), seam)
 
     def _spread(self, arm: int, tracked: tuple[float, float], dt: float) -> tuple[float, float]:
         """Step 3 of the module docstring: output = tracked + offset, jumps absorbed, offset decaying."""
-        seam = self.conf.seam
-        if not self._history[arm]:
-            self._tracked[arm] = list(tracked)
-            self._offset[arm] = [0.0, 0.0]
-            return tracked
-        decay = min(self.conf.branch_switch_rate * dt, MAX_DECAY_STEP)
         previous, offset = self._tracked[arm], self._offset[arm]
-        out = [0.0, 0.0]
-        for i, target in enumerate(tracked):
-            e = offset[i]
-            step = target - previous[i]
+        self._tracked[arm] = tracked
+        if not self._history[arm]:
+            self._offset[arm] = (0.0, 0.0)
+            return tracked
+        seam = self.conf.seam
+        decay = min(self.conf.branch_switch_rate * dt, MAX_DECAY_STEP)
+        spread = []
+        for target, before, e in zip(tracked, previous, offset):
+            step = target - before
             if abs(step) >= BRANCH_JUMP:
                 e -= step  # the output does not follow the jump
-            e -= min(decay, max(-decay, e))
-            e = min(seam - target, max(seam - _TWO_PI - target, e))  # output in [seam − 2π, seam]
-            offset[i], out[i] = e, target + e
-        self._tracked[arm] = list(tracked)
-        return out[0], out[1]
+            e = e - decay if e > decay else e + decay if e < -decay else 0.0  # e ← e − clamp(e, ±δ)
+            high, low = seam - target, seam - _TWO_PI - target  # output in [seam − 2π, seam]
+            e = high if e > high else low if e < low else e
+            spread.append(e)
+        self._offset[arm] = tuple(spread)
+        return tracked[0] + spread[0], tracked[1] + spread[1]
 
 
 def _angle_keypoints() -> np.ndarray:
@@ -328,13 +321,15 @@ class AngleRates:
 
     def __call__(self, t: float, theta: np.ndarray, valid: np.ndarray, fresh: np.ndarray) -> np.ndarray:
         """θ̇ at ``t`` (s) from θ (8,), θ_valid (8,) and the filter's ``fresh`` (15,) points."""
+        return self.update(t, theta.tolist(), valid.tolist(), fresh.tolist())
+
+    def update(self, t: float, angles: list[float], valid: list[bool], fresh: list[bool]) -> np.ndarray:
+        """:meth:`__call__` on Python lists (kept as the previous frame's: not to be modified after)."""
         dt = 0.0 if self._t is None else t - self._t
-        angles: list[float] = theta.tolist()
         steps = [now - before for now, before in zip(angles, self._theta)]
-        usable = [now and before and math.isfinite(d) for now, before, d in zip(valid.tolist(), self._valid, steps)]
-        is_fresh: list[bool] = fresh.tolist()
-        if True in is_fresh:
-            usable = [use and not any(is_fresh[k] for k in uses) for use, uses in zip(usable, _ANGLE_KEYPOINT_LISTS)]
+        usable = [now and before and math.isfinite(d) for now, before, d in zip(valid, self._valid, steps)]
+        if True in fresh:
+            usable = [use and not any(fresh[k] for k in uses) for use, uses in zip(usable, _ANGLE_KEYPOINT_LISTS)]
         if dt > 0.0 and any(usable):
             wrapped = [d - _TWO_PI * math.floor((d + math.pi) / _TWO_PI) if use else 0.0  # into [−π, π)
                        for d, use in zip(steps, usable)]
@@ -343,6 +338,6 @@ class AngleRates:
             self.filter.reset([not use for use in usable])
             rate = self.filter.rate
         self._theta = angles
-        self._valid = valid.tolist()
+        self._valid = valid
         self._t = t
         return rate

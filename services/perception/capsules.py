@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from services.perception.point_filter import FilteredSkeleton
+from services.perception.point_filter import FilteredSkeleton, Vec, points_array
 from shared.body import capsule_radii
 from shared.config import HumanConfig
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX
@@ -38,9 +38,9 @@ _SEGMENTS = {
     "left_thigh": (_K["left_hip"], _K["left_knee"]),
     "right_thigh": (_K["right_hip"], _K["right_knee"]),
 }
-#: (7, 2) keypoint index of every capsule endpoint: one gather gives all endpoints.
-_ENDPOINTS = np.array([_SEGMENTS[name] for name in CAPSULE_NAMES])
-_PAIRS = [tuple(pair) for pair in _ENDPOINTS.tolist()]
+_PAIRS = [_SEGMENTS[name] for name in CAPSULE_NAMES]
+#: The keypoint of every capsule endpoint, flat: capsule i is [ends[2i], ends[2i + 1]].
+_ENDPOINT_KEYPOINTS = [k for pair in _PAIRS for k in pair]
 _FOREARMS = (CAPSULE_NAMES.index("left_forearm"), CAPSULE_NAMES.index("right_forearm"))
 _TORSO = CAPSULE_NAMES.index("torso")
 _PELVIS = _K["pelvis"]
@@ -53,7 +53,8 @@ class HumanCapsules:
 
     def __init__(self, human: HumanConfig) -> None:
         self.configure(human)
-        self.endpoints = np.zeros((N_CAPSULES, 2, 3))
+        self._ends: list[Vec] = [(0.0, 0.0, 0.0)] * (2 * N_CAPSULES)  # the endpoints of the last frame, flat
+        self._endpoints = np.zeros((N_CAPSULES, 2, 3))  # the same as an array
         self._valid = [False] * N_CAPSULES
         self._t: float | None = None
         self._torso_from_shoulders = False
@@ -69,20 +70,26 @@ class HumanCapsules:
         self._valid = [False] * N_CAPSULES
 
     def __call__(self, skeleton: FilteredSkeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(endpoints (7, 2, 3), valid (7,), velocities (7, 2, 3)) of ``skeleton`` (module docstring).
-        Built in Python floats and made arrays once: for 7 capsules numpy's cost per call was most
-        of the work."""
-        points: list[list[float]] = skeleton.points.tolist()
-        point_valid: list[bool] = skeleton.valid.tolist()
-        point_fresh: list[bool] = skeleton.fresh.tolist()
-        ends = [[points[a], points[b]] for a, b in _PAIRS]
+        """(endpoints (7, 2, 3), valid (7,), velocities (7, 2, 3)) of ``skeleton`` (module docstring)."""
+        endpoints, valid, velocities = self.build(
+            skeleton.t, skeleton.points.tolist(), skeleton.valid.tolist(), skeleton.fresh.tolist())
+        return endpoints, np.array(valid, bool), velocities
+
+    def build(
+        self, t: float, points: list[Vec], point_valid: list[bool], point_fresh: list[bool],
+    ) -> tuple[np.ndarray, list[bool], np.ndarray]:
+        """:meth:`__call__` on the filter's output as Python lists (15 points (x, y, z), valid, fresh);
+        ``valid`` is returned as a list. Built in Python floats, made arrays once: for 7 capsules
+        numpy's cost per call was most of the work."""
+        ends = [points[k] for k in _ENDPOINT_KEYPOINTS]
         valid = [point_valid[a] and point_valid[b] for a, b in _PAIRS]
         fresh = [point_fresh[a] or point_fresh[b] for a, b in _PAIRS]
 
         left, right = _SHOULDERS
         from_shoulders = not valid[_TORSO] and point_valid[_PELVIS] and point_valid[left] and point_valid[right]
         if from_shoulders:
-            ends[_TORSO][1] = [0.5 * (a + b) for a, b in zip(points[left], points[right])]
+            (x0, y0, z0), (x1, y1, z1) = points[left], points[right]
+            ends[2 * _TORSO + 1] = (0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * (z0 + z1))
             valid[_TORSO] = True
             fresh[_TORSO] = point_fresh[_PELVIS] or point_fresh[left] or point_fresh[right]
         if from_shoulders != self._torso_from_shoulders:
@@ -90,26 +97,26 @@ class HumanCapsules:
             self._torso_from_shoulders = from_shoulders
 
         for i in _FOREARMS:  # extend past the wrist along the forearm
-            (x0, y0, z0), (x1, y1, z1) = ends[i]
+            (x0, y0, z0), (x1, y1, z1) = ends[2 * i], ends[2 * i + 1]
             fore = (x1 - x0, y1 - y0, z1 - z0)
             length = math.sqrt(fore[0] * fore[0] + fore[1] * fore[1] + fore[2] * fore[2])
             if length > 1e-9:
                 scale = self.hand_extension / length
-                ends[i][1] = [x1 + scale * fore[0], y1 + scale * fore[1], z1 + scale * fore[2]]
+                ends[2 * i + 1] = (x1 + scale * fore[0], y1 + scale * fore[1], z1 + scale * fore[2])
 
-        endpoints = np.array(ends)  # (7, 2, 3)
-        valid_now = np.array(valid)
-        if self._t is not None and skeleton.t > self._t:
+        if not all(valid):  # an invalid capsule keeps its last endpoints
+            for i, ok in enumerate(valid):
+                if not ok:
+                    ends[2 * i:2 * i + 2] = self._ends[2 * i:2 * i + 2]
+        endpoints = points_array(ends).reshape(N_CAPSULES, 2, 3)
+        if self._t is not None and t > self._t:
             moving = [now and before and not new for now, before, new in zip(valid, self._valid, fresh)]
-            velocities = (endpoints - self.endpoints) * (1.0 / (skeleton.t - self._t))
+            velocities = (endpoints - self._endpoints) * (1.0 / (t - self._t))
             if not all(moving):
-                velocities[~np.array(moving)] = 0.0
+                velocities[np.logical_not(moving)] = 0.0
         else:
             velocities = np.zeros((N_CAPSULES, 2, 3))
-        if all(valid):
-            self.endpoints = endpoints
-        else:
-            np.copyto(self.endpoints, endpoints, where=valid_now[:, None, None])
+        self._ends, self._endpoints = ends, endpoints
         self._valid = valid
-        self._t = skeleton.t
-        return self.endpoints.copy(), valid_now, velocities
+        self._t = t
+        return endpoints.copy(), valid, velocities

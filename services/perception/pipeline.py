@@ -13,7 +13,7 @@ import numpy as np
 
 from services.perception.angles import AngleRates, PoseEstimator
 from services.perception.capsules import HumanCapsules
-from services.perception.point_filter import PointFilter
+from services.perception.point_filter import PointFilter, points_array
 from services.perception.base import SkeletonFrame
 from shared.config import HumanConfig, PerceptionConfig
 from shared.messages import HumanState
@@ -84,37 +84,40 @@ class PerceptionPipeline:
         self.capsules.configure(human)
 
     def step(self, frame: SkeletonFrame) -> PerceptionResult:
-        """Process one frame (points in the robot frame; NaN or low confidence = missing)."""
+        """Process one frame (points in the robot frame; NaN or low confidence = missing). The stages
+        pass Python lists to each other; the arrays are made once, for the result."""
         resets_before = self.filter.resets
-        filtered = self.filter(frame.t, frame.xyz, frame.conf, frame.discontinuity)
+        points, valid, fresh = self.filter.update(frame.t, frame.xyz, frame.conf, frame.discontinuity)
         if self.filter.resets != resets_before:
             self.estimator.reset()
             self.rates.reset()
             self.capsules.reset()
-        theta, theta_valid = self.estimator(filtered.points, filtered.valid, frame.t)
-        theta_rate = self.rates(frame.t, theta, theta_valid, filtered.fresh)
-        capsules, capsule_valid, velocities = self.capsules(filtered)
-        all_valid = bool(filtered.valid.all())  # valid points are finite; the others are sent as 0
-        keypoints = filtered.points if all_valid else np.where(filtered.valid[:, None], filtered.points, 0.0)
+        theta, theta_valid = self.estimator.estimate(points, valid, frame.t)
+        theta_rate = self.rates.update(frame.t, theta, theta_valid, fresh)
+        capsules, capsule_valid, velocities = self.capsules.build(frame.t, points, valid, fresh)
+        keypoint_valid = np.array(valid, bool)
+        keypoints = points_array(points)
+        missing = valid.count(False)
+        if missing:  # valid points are finite; the others are sent as 0
+            keypoints[np.logical_not(keypoint_valid)] = 0.0
 
         c = self.counters
         c.frames += 1
         c.rejected_jumps = self.filter.rejected
         c.reacquired = self.filter.reacquired
         c.filter_resets = self.filter.resets
-        if not all_valid:
-            c.missing_points += N_KEYPOINTS - int(np.count_nonzero(filtered.valid))
-        if not (theta_valid.all() and capsule_valid.all()):
+        c.missing_points += missing
+        if not (all(theta_valid) and all(capsule_valid)):
             c.invalid_frames += 1
         return PerceptionResult(
             t=frame.t,
             keypoints=keypoints,
-            keypoint_valid=filtered.valid,
-            theta=theta,
-            theta_valid=theta_valid,
+            keypoint_valid=keypoint_valid,
+            theta=np.array(theta),
+            theta_valid=np.array(theta_valid, bool),
             theta_rate=theta_rate,
             capsules=capsules,
             capsule_radii=self.capsules.radii,
-            capsule_valid=capsule_valid,
+            capsule_valid=np.array(capsule_valid, bool),
             capsule_velocities=velocities,
         )

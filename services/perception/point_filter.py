@@ -64,14 +64,22 @@ class _Ema:
 
     def __init__(self, conf: PointFilterConfig, n_points: int) -> None:
         self.conf = conf
-        self.n_points = n_points
+        self._gain = 1.0  # α of this frame
 
     def alpha(self, dt: float, speed: float = 0.0) -> float:
         tau = self.conf.ema_tau_s
         return 1.0 if tau <= 0.0 else -math.expm1(-dt / tau)
 
-    def gains(self, dt: float, velocity: list[Vec | None], fresh: list[bool]) -> list[float]:
-        return [self.alpha(dt)] * self.n_points
+    def begin_frame(self, dt: float) -> None:
+        """A frame ``dt`` s after the previous one begins."""
+        self._gain = self.alpha(dt)
+
+    def gain(self, k: int, velocity: Vec) -> float:
+        """α of point ``k``, accepted with history, its raw velocity ``velocity`` (m/s)."""
+        return self._gain
+
+    def restart(self, k: int) -> None:
+        """Point ``k`` starts afresh."""
 
     def reset(self) -> None:
         pass
@@ -83,28 +91,31 @@ class _OneEuro:
     def __init__(self, conf: PointFilterConfig, n_points: int) -> None:
         self.conf = conf
         self._velocity: list[Vec] = [(0.0, 0.0, 0.0)] * n_points  # ẋ̂ (m/s)
+        # this frame's Δt, α_d, min_cutoff_hz and beta (:meth:`begin_frame`)
+        self._dt = self._velocity_gain = self._min_cutoff = self._beta = 0.0
 
     def alpha(self, dt: float, speed: float = 0.0) -> float:
         return lowpass_gain(dt, self.conf.min_cutoff_hz + self.conf.beta * speed)
 
-    def gains(self, dt: float, velocity: list[Vec | None], fresh: list[bool]) -> list[float]:
-        """α per point; ``velocity[k]`` the raw velocity of a point accepted with history (None:
-        not updated this frame), ``fresh[k]``: the point starts afresh (ẋ̂ = 0)."""
-        if dt <= 0.0:
-            return [1.0] * len(velocity)
-        conf, smoothed = self.conf, self._velocity
-        a_d, min_cutoff, beta = lowpass_gain(dt, conf.d_cutoff_hz), conf.min_cutoff_hz, conf.beta
-        out = []
-        for k, raw in enumerate(velocity):
-            if fresh[k]:
-                v = smoothed[k] = (0.0, 0.0, 0.0)
-            elif raw is not None:
-                s0, s1, s2 = smoothed[k]
-                v = smoothed[k] = (s0 + a_d * (raw[0] - s0), s1 + a_d * (raw[1] - s1), s2 + a_d * (raw[2] - s2))
-            else:
-                v = smoothed[k]
-            out.append(lowpass_gain(dt, min_cutoff + beta * math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])))
-        return out
+    def begin_frame(self, dt: float) -> None:
+        """A frame ``dt`` s after the previous one begins (dt = 0: the first; no point has history)."""
+        conf = self.conf
+        self._dt, self._min_cutoff, self._beta = dt, conf.min_cutoff_hz, conf.beta
+        if dt > 0.0:
+            self._velocity_gain = lowpass_gain(dt, conf.d_cutoff_hz)
+
+    def gain(self, k: int, velocity: Vec) -> float:
+        """α of point ``k``, accepted with history, from its raw velocity ``velocity`` (m/s): ẋ̂ is
+        updated and f_c = ``min_cutoff_hz`` + ``beta``·‖ẋ̂‖."""
+        s0, s1, s2 = self._velocity[k]
+        a_d = self._velocity_gain
+        v0, v1, v2 = s0 + a_d * (velocity[0] - s0), s1 + a_d * (velocity[1] - s1), s2 + a_d * (velocity[2] - s2)
+        self._velocity[k] = (v0, v1, v2)
+        return lowpass_gain(self._dt, self._min_cutoff + self._beta * math.sqrt(v0 * v0 + v1 * v1 + v2 * v2))
+
+    def restart(self, k: int) -> None:
+        """Point ``k`` starts afresh: ẋ̂ = 0."""
+        self._velocity[k] = (0.0, 0.0, 0.0)
 
     def reset(self) -> None:
         self._velocity = [(0.0, 0.0, 0.0)] * len(self._velocity)
@@ -167,6 +178,15 @@ class PointFilter:
 
     def __call__(self, t: float, xyz: np.ndarray, confidence: np.ndarray, discontinuity: bool = False) -> FilteredSkeleton:
         """Filter one frame: ``xyz`` (K, 3) metres (NaN = missing), ``confidence`` (K,) in [0, 1]."""
+        points, valid, fresh = self.update(t, xyz, confidence, discontinuity)
+        return FilteredSkeleton(t=t, points=points_array(points), valid=np.array(valid, bool),
+                                fresh=np.array(fresh, bool))
+
+    def update(
+        self, t: float, xyz: np.ndarray, confidence: np.ndarray, discontinuity: bool = False,
+    ) -> tuple[list[Vec], list[bool], list[bool]]:
+        """:meth:`__call__` with the output as new Python lists (points, valid, fresh), K each: what
+        the perception pipeline hands on to the angle and capsule stages without array round trips."""
         conf = self.conf
         if self._t is not None and (discontinuity or not (0.0 < t - self._t <= conf.reset_gap_s)):
             self.reset()
@@ -175,9 +195,9 @@ class PointFilter:
         self._t = t
         hold_s, max_speed, min_confidence = conf.hold_s, conf.max_speed, conf.min_confidence
         accepted, accepted_t, candidate_n = self._accepted, self._accepted_t, self._candidate_n
-        n = self.n_points
-        accept, fresh = [False] * n, [False] * n
-        velocity: list[Vec | None] = [None] * n  # raw velocity of the points accepted with history
+        estimate, smoothing = self._estimate, self._smoothing
+        smoothing.begin_frame(dt)
+        fresh = [False] * self.n_points
         for k, (x, c) in enumerate(zip(xyz.tolist(), confidence.tolist())):
             x0, x1, x2 = x
             # A sum is finite iff all three coordinates are; a NaN confidence compares False.
@@ -193,28 +213,21 @@ class PointFilter:
                         self.rejected += 1
                         continue
                     self.reacquired += 1
-                    fresh[k] = True
-                else:
+                else:  # accepted with history: x̂ ← x̂ + α (x − x̂)
                     candidate_n[k] = 0
-                    velocity[k] = (d0 / since, d1 / since, d2 / since)
+                    g = smoothing.gain(k, (d0 / since, d1 / since, d2 / since))
+                    e0, e1, e2 = estimate[k]
+                    estimate[k] = (e0 + g * (x0 - e0), e1 + g * (x1 - e1), e2 + g * (x2 - e2))
+                    accepted[k], accepted_t[k] = x, t  # x: this frame's own list
+                    continue
             else:
                 candidate_n[k] = 0
-                fresh[k] = True
-            accept[k] = True
-            accepted[k], accepted_t[k] = x, t  # x: this frame's own list
-
-        # x̂ ← x where fresh, x̂ + α (x − x̂) where accepted with history, unchanged elsewhere.
-        alpha = self._smoothing.gains(dt, velocity, fresh)
-        estimate = self._estimate
-        for k in range(n):
-            if fresh[k]:
-                estimate[k] = accepted[k]
-            elif accept[k]:
-                e, x, g = estimate[k], accepted[k], alpha[k]
-                estimate[k] = (e[0] + g * (x[0] - e[0]), e[1] + g * (x[1] - e[1]), e[2] + g * (x[2] - e[2]))
-        valid = [t - a <= hold_s for a in accepted_t]
-        points = np.fromiter(chain.from_iterable(estimate), np.float64, 3 * n).reshape(n, 3)
-        return FilteredSkeleton(t=t, points=points, valid=np.array(valid), fresh=np.array(fresh))
+            # (re)initialised (fresh): x̂ ← x, no velocity history
+            fresh[k] = True
+            smoothing.restart(k)
+            estimate[k] = accepted[k] = x
+            accepted_t[k] = t
+        return estimate[:], [t - a <= hold_s for a in accepted_t], fresh
 
     def _reacquires(self, k: int, t: float, x: Vec) -> bool:
         """Point ``k``'s rejected measurement ``x`` at ``t`` extends its run of mutually consistent
@@ -229,6 +242,11 @@ class PointFilter:
             return True
         self._candidate_n[k] = count
         return False
+
+
+def points_array(points: list[Vec]) -> np.ndarray:
+    """``points`` (K tuples (x, y, z)) as a (K, 3) array."""
+    return np.fromiter(chain.from_iterable(points), np.float64, 3 * len(points)).reshape(len(points), 3)
 
 
 def _squared_distance(a: Sequence[float], b: Sequence[float]) -> float:
