@@ -24,7 +24,7 @@ from services.safety.qp import QPProblem
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
-from tests.support.pipelines import DT, alone_at, pipeline_for
+from tests.support.pipelines import DT, alone_at, pipeline_for, random_safe_state
 
 TOL = 1e-6
 FOREARM = CAPSULE_NAMES.index("left_forearm")
@@ -35,17 +35,6 @@ def stacked(p, q):
     blocks = p.filter.blocks_at(q)
     return (np.vstack([b.A for b in blocks]), np.concatenate([b.b for b in blocks]),
             np.concatenate([b.soft for b in blocks]))
-
-
-def random_safe_state(p, rng: np.random.Generator) -> np.ndarray:
-    """A random joint state whose self rows and joint barriers hold (no person in the scene)."""
-    kin = p.kinematics
-    while True:
-        q = rng.uniform(kin.q_min, kin.q_max)
-        p.barrier.set_external(None)
-        A, b, soft = stacked(p, q)
-        if (b[~soft] <= 0.0).all():
-            return q
 
 
 def random_intrusion(p, rng: np.random.Generator, *others, speeds: tuple[float, float] = (1.0, 3.0),

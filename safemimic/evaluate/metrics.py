@@ -218,6 +218,7 @@ def input_metrics(
         "human_lookahead_s": s.human_lookahead_s,
         "human_predict_s": s.human_predict_s,
         "human_margin": s.human_margin,
+        "human_standoff_m": s.human_standoff_m,
         "self_margin": s.self_margin,
         "feedforward": s.feedforward,
         "target_path": TargetPath(s.target_path).value,

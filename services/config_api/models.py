@@ -86,6 +86,7 @@ SAFETY_FIELDS: dict[str, str] = {
     "self_margin": "safety.self_margin",
     "human_margin": "safety.human_margin",
     "human_predict_s": "safety.human_predict_s",
+    "human_standoff_m": "safety.human_standoff_m",
     "dt": "safety.rate_hz",  # dt = 1 / rate_hz
     "enabled_pair_groups": "safety.enabled_pair_groups",
     "capsule_radii.robot": "safety.capsule_radii",
@@ -112,7 +113,7 @@ RETARGET_FIELDS: dict[str, str] = {
 }
 #: Safety request fields whose value goes into the configuration unchanged.
 _DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_predict_s",
-                  "human_velocity_term", "feedforward", "intrusion_backout_mps",
+                  "human_standoff_m", "human_velocity_term", "feedforward", "intrusion_backout_mps",
                   "sphere_k"}
 #: Safety request fields that are a choice (an enum): the configuration takes the choice's value.
 _CHOICE_SAFETY = {"geometry", "on_intrusion", "target_path"}
@@ -176,6 +177,10 @@ class SafetyPatch(_Patch):
     human_predict_s: _like(SafetyConfig, "human_predict_s") = Field(
         None, description="every person capsule swept ahead along its measured velocity this far (s): the delay from camera to "
         "command the position has; 0: as measured (the paper)"
+    )
+    human_standoff_m: _like(SafetyConfig, "human_standoff_m") = Field(
+        None, description="the robot closes on no person capsule nearer than this by its own motion (m, beyond φ and the "
+        "person margin); never a retreat; 0: none (the paper)"
     )
     dt: Annotated[float, Strict(), Field(ge=DT_MIN, le=DT_MAX)] = Field(None, description="control period Δt (s) = 1 / control rate")
     enabled_pair_groups: Annotated[list[PairGroup], AfterValidator(_distinct)] = Field(
@@ -271,6 +276,7 @@ class SafetyParams(_View):
     self_margin: float
     human_margin: float
     human_predict_s: float
+    human_standoff_m: float
     dt: float
     enabled_pair_groups: list[PairGroup]
     capsule_radii: CapsuleRadii
@@ -287,7 +293,8 @@ class SafetyParams(_View):
         s, h = conf.safety, conf.human
         return cls(
             gamma=s.gamma, phi=s.phi, k=s.gain, w=s.weights, u_min=s.u_min, u_max=s.u_max, accel_max=s.accel_max,
-            self_margin=s.self_margin, human_margin=s.human_margin, human_predict_s=s.human_predict_s, dt=1.0 / s.rate_hz,
+            self_margin=s.self_margin, human_margin=s.human_margin, human_predict_s=s.human_predict_s,
+            human_standoff_m=s.human_standoff_m, dt=1.0 / s.rate_hz,
             enabled_pair_groups=s.enabled_pair_groups,
             capsule_radii=CapsuleRadii(
                 robot=s.capsule_radii,

@@ -140,6 +140,7 @@ from services.safety.qp.box import (
 )
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
 from services.safety.protective_stop import VIOLATION_TOL, ProtectiveStop
+from services.safety.standoff import apply_standoff
 from shared.config import IntrusionResponse
 from shared.messages import SafetyMode
 
@@ -187,11 +188,12 @@ class FilterParams:
     self_margin: float = 0.0  # m the hard distance rows aim beyond φ (module docstring)
     on_intrusion: str = "stop"  # "stop" | "retreat" | "stop_on_give_way" (module docstring)
     intrusion_backout_mps: float = 0.0  # m/s an arm backs out of a still person in a stop (services.safety.protective_stop)
+    human_standoff_m: float = 0.0  # m within which the robot closes on no person capsule (services.safety.standoff)
 
     def __post_init__(self) -> None:
         """Scalars as float, arrays as contiguous float64 (the compiled step's bound argument types)."""
         for name in ("gamma", "phi", "gain", "relax_penalty", "human_lookahead_s", "self_margin",
-                     "intrusion_backout_mps"):
+                     "intrusion_backout_mps", "human_standoff_m"):
             object.__setattr__(self, name, float(getattr(self, name)))
         for name in ("weights", "u_max", "u_min", "accel_max"):
             value = getattr(self, name)
@@ -213,6 +215,7 @@ class FilterParams:
             self_margin=safety.self_margin,
             on_intrusion=IntrusionResponse(safety.on_intrusion).value,
             intrusion_backout_mps=safety.intrusion_backout_mps,
+            human_standoff_m=safety.human_standoff_m,
         )
 
 
@@ -378,6 +381,7 @@ class SafetyFilter:
                 inside = low
             if low_own < low_self:
                 low_self = low_own
+        apply_standoff(b_all, h_all, self._soft_all, gamma, p.human_standoff_m)
         rows: BarrierRows = self.barrier.last_rows  # type: ignore[assignment]
         if p.self_margin > 0.0 and rows.b.base is not b_all:
             rows.b += self._shift[: rows.b.shape[0]]

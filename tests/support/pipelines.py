@@ -21,3 +21,14 @@ def alone_at(p: SafetyPipeline, q: np.ndarray) -> None:
     """No person in the scene; the filter restarts at ``q`` (no previous command: no acceleration bound)."""
     p.barrier.set_external(None)
     p.filter.reset(q)
+
+
+def random_safe_state(p: SafetyPipeline, rng: np.random.Generator) -> np.ndarray:
+    """A random joint state whose self rows and joint barriers hold (no person in the scene)."""
+    kin = p.kinematics
+    while True:
+        q = rng.uniform(kin.q_min, kin.q_max)
+        p.barrier.set_external(None)
+        blocks = p.filter.blocks_at(q)
+        if all((block.b[~block.soft] <= 0.0).all() for block in blocks):
+            return q
