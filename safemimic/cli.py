@@ -25,6 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "executor": ("services.executor.service", "run the robot executor: MuJoCo simulation (or hardware) following JointCommand, publishing JointState"),
     "evaluate": ("safemimic.evaluate.main", "offline evaluation against the true person (camera latency, noise): with and without the CBF layer in MuJoCo → metrics.json + figures; --suite for a folder"),
     "compare": ("safemimic.evaluate.compare", "two evaluation suites side by side, before → after a change: sums, goals met and the runs that changed"),
+    "variants": ("safemimic.evaluate.variants", "test variants of recordings (turned, stepping in or sideways, scaled, broadened, mirrored) to evaluate with --suite"),
     "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),
     "viewer": ("services.viewer.service", "live 3D view in Rerun of robot, person and barriers (subscribes only; web viewer, --save FILE.rrd)"),
     "health": ("safemimic.health", "which services are alive on the bus (liveliness tokens); exit 0 if the named ones are"),

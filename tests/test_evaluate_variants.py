@@ -1,9 +1,9 @@
-"""Test variants of a recording (``python -m safemimic.evaluate.variants``): a turn in place keeps
+"""Test variants of a recording (``safemimic variants``, ``python -m safemimic.evaluate.variants``): a turn in place keeps
 every keypoint's height and distance from the turning axis and ends where it began, a step-in
 carries the person along the direction they face by exactly the step, a side-step towards their
 right, a scaled person keeps the floor point below the pelvis and scales every distance, a broadened
 one has its shoulders the width apart and its arms' segments unchanged, a mirrored one is the
-reflection with left and right swapped; bad input is refused."""
+reflection with left and right swapped; bad input is refused; the ``safemimic`` command runs it."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from safemimic.cli import main as safemimic
 from safemimic.evaluate.variants import main, mirrored, read_recording
 from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
 from tests.test_evaluate_truth import raise_recording, write_recording
@@ -137,3 +138,19 @@ def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.
             main([str(tmp_path / "bad.npz"), str(tmp_path / "out"), "--shoulder-width", bad])
         assert exit_.value.code == 2
         assert "shoulder" in capsys.readouterr().err
+
+
+def test_the_safemimic_command_writes_every_variant_of_a_folder(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    clips = tmp_path / "clips"
+    clips.mkdir()
+    for name in ("a", "b"):
+        write_recording(clips / f"{name}.npz", raise_recording(1.0))
+    assert safemimic(["variants", str(clips), str(tmp_path / "out"), "--scales", "1.1"]) == 0
+    kinds = ["mirror", "scale110", "shoulders370mm", "sidestep", "stepin", "turn"]
+    written = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert written == sorted(f"{name}_{kind}.npz" for name in ("a", "b") for kind in kinds)
+    assert capsys.readouterr().out.count("wrote ") == len(written)
+    assert safemimic(["variants", str(tmp_path / "missing"), str(tmp_path / "elsewhere")]) == 2
+    assert "no such recording or folder" in capsys.readouterr().err
+    assert not (tmp_path / "elsewhere").exists()  # nothing written for a source that is not there

@@ -2,9 +2,10 @@
 taller or shorter person.
 
 The development clips are four; the product meets other people doing other things (turns, walking,
-someone stepping into the robot). ``python -m safemimic.evaluate.variants IN OUT`` writes, for every
-recording ``IN/X.npz`` (the evaluator's ``names``/``t``/``xyz`` format, z up, metres), these variants
-into ``OUT`` with every other field unchanged:
+someone stepping into the robot). ``safemimic variants IN OUT`` (or ``python -m
+safemimic.evaluate.variants IN OUT``) writes, for every recording ``IN/X.npz`` (the evaluator's
+``names``/``t``/``xyz`` format, z up, metres), these variants into ``OUT`` with every other field
+unchanged:
 
 - ``X_turn.npz``: the whole skeleton rotated about the vertical through the first frame's pelvis by
   an angle growing linearly from 0 at the first frame to ``--turns`` · 2π at the last (a person
@@ -209,10 +210,14 @@ def _width(text: str) -> float:
     return width
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m safemimic.evaluate.variants", description=__doc__.split("\n\n")[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    parser = parser or argparse.ArgumentParser(prog="safemimic variants")
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.description = (
+        __doc__.split("\n\n", 1)[1] + "\n"
+        "  safemimic variants ../shared/data/mocap variants/\n"
+        "  safemimic evaluate --suite variants/ --jobs 2 --out variants-eval"
+    )
     parser.add_argument("source", type=Path, help="a recording (.npz) or a folder of them")
     parser.add_argument("out", type=Path, help="folder for the variants (created)")
     parser.add_argument("--turns", type=float, default=1.0, help="full turns in place over the clip (default 1)")
@@ -224,7 +229,14 @@ def main(argv: list[str] | None = None) -> int:
                         f"{','.join(map(str, SCALES))}; '' for none)")
     parser.add_argument("--shoulder-width", type=_width, default=BROAD_SHOULDERS,
                         help=f"shoulder width of the broadened variant, m (default {BROAD_SHOULDERS}; 0 for none)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Write the variants of every recording named; 2 (and a message) for unusable input."""
+    if not args.source.exists():
+        print(f"error: no such recording or folder: {args.source}", file=sys.stderr)
+        return 2
     sources = sorted(args.source.glob("*.npz")) if args.source.is_dir() else [args.source]
     if not sources:
         print(f"error: no .npz recording in {args.source}", file=sys.stderr)
@@ -239,6 +251,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m safemimic.evaluate.variants``: the same as ``safemimic variants``."""
+    return run(build_parser(argparse.ArgumentParser(prog="python -m safemimic.evaluate.variants")).parse_args(argv))
 
 
 if __name__ == "__main__":
