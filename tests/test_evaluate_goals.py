@@ -60,12 +60,17 @@ def test_a_run_whose_floor_misses_the_goal_is_counted_beyond_the_floor() -> None
     closing_in = run("reach", true_contacts_robot_human=40, true_contacts_fixed_bodies=5)  # floor 5 ≤ 10
     late = run("late", fidelity={"rms_true_free": 0.2, "rms_true_free_latency_floor": 0.09})
     retargeted = run("far", fidelity={"direction_error_deg_p95": 40.0, "direction_error_deg_p95_at_target": 20.0})
-    report = goal_report([inside_the_legs, closing_in, late, retargeted])
+    seen_late = run("fast", fidelity={"direction_error_deg_p95": 30.0, "direction_error_deg_p95_at_target": 10.0,
+                                      "direction_error_deg_p95_latency_floor": 18.0})
+    behind = run("slow", fidelity={"direction_error_deg_p95": 30.0, "direction_error_deg_p95_at_target": 10.0,
+                                   "direction_error_deg_p95_latency_floor": 12.0})
+    report = goal_report([inside_the_legs, closing_in, late, retargeted, seen_late, behind])
     contacts = row(report, "true contacts ≤ 10 % of the run without the CBF")
     assert (contacts["failed"], contacts["beyond_floor"]) == (2, 1)
     assert contacts["failing"] == ["walk (facing) [floor]", "reach (facing)"]
     assert row(report, "rms_true_free ≤ 0.05 rad")["failing"] == ["late (facing) [floor]"]
-    assert row(report, "arm direction p95 ≤ 15°")["failing"] == ["far (facing) [floor]"]
+    assert row(report, "arm direction p95 ≤ 15°")["failing"] == ["far (facing) [floor]", "fast (facing) [floor]",
+                                                                  "slow (facing)"]
 
 
 def test_no_contact_without_the_cbf_allows_none_with_it() -> None:

@@ -43,8 +43,8 @@ class Evaluation:
         """The content of ``metrics.json``."""
         free = free_steps(self.cbf)
         phi, mirror = self.conf.safety.phi, self.conf.retargeting.mirror
-        at_target = target_directions(self.person, mirror)
         latency = self.camera.latency_s
+        at_target = target_directions(self.person, mirror, latency)
         return {
             "cbf": run_metrics(self.cbf, free, self.person, phi, mirror, at_target, latency,
                                self.human.in_view(self.cbf.human)),

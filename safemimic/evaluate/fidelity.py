@@ -34,6 +34,10 @@ its home pose to the person's first pose, which says nothing of how it follows a
   exactly at ``q_true`` (perfect tracking), over the same samples: the share of the direction error
   that the retargeting (``retargeting.method``: by directions, or the paper's eq. 2) and the
   robot's kinematics leave, which no controller can remove;
+- ``direction_error_deg_p50_latency_floor`` / ``_p95_latency_floor``: the same with the robot placed
+  at ``q_true(t − L)``, L the camera latency, against the person at t, over the same samples: the
+  retargeting's error and the latency's together, what a robot exactly at the target it was last
+  shown scores (the directions' counterpart of ``rms_true_free_latency_floor``);
 - ``judged_from_s``: where the judged steps begin (s; null: the person was never perceived).
 """
 
@@ -111,12 +115,14 @@ def delayed(q: np.ndarray, steps: int) -> np.ndarray:
 
 def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions: np.ndarray,
              directions_at_target: np.ndarray, perceived: np.ndarray, dt: float,
-             latency_s: float, *, q_nom: np.ndarray, q_cbf: np.ndarray) -> dict[str, float | None]:
+             latency_s: float, *, q_nom: np.ndarray, q_cbf: np.ndarray,
+             directions_seen_late: np.ndarray) -> dict[str, float | None]:
     """The ``fidelity`` object of one run (module docstring): ``q_true``/``q_sim`` (N, 8) rad,
-    ``free`` (N,) the free steps, ``directions``/``directions_at_target`` (N, 4) deg from
-    :func:`direction_errors` at q_sim / at q_true, ``perceived`` (N,) the perceived state in force
-    shows the person, ``latency_s`` the camera latency (s), ``q_nom``/``q_cbf`` (N, 8) rad the run's
-    target and safe command (the stages of the lag)."""
+    ``free`` (N,) the free steps, ``directions``/``directions_at_target``/``directions_seen_late``
+    (N, 4) deg from :func:`direction_errors` at q_sim / at q_true / at q_true one latency late,
+    ``perceived`` (N,) the perceived state in force shows the person, ``latency_s`` the camera
+    latency (s), ``q_nom``/``q_cbf`` (N, 8) rad the run's target and safe command (the stages of
+    the lag)."""
     start = judged_from(perceived, dt)
     first = len(q_true) if start is None else min(start, len(q_true))
     lag = lag_ms(q_true, q_sim, dt, first)
@@ -126,8 +132,9 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
     late = delayed(q_true, round(latency_s / dt))[judged]
     q_true, q_sim, free = q_true[judged], q_sim[judged], free[judged]
     error = q_sim - q_true
-    both = np.isfinite(directions[judged][free]) & np.isfinite(directions_at_target[judged][free])
-    samples, at_target = directions[judged][free][both], directions_at_target[judged][free][both]
+    judged_free = [d[judged][free] for d in (directions, directions_at_target, directions_seen_late)]
+    both = np.isfinite(judged_free[0]) & np.isfinite(judged_free[1]) & np.isfinite(judged_free[2])
+    samples, at_target, seen_late = (d[both] for d in judged_free)
 
     def rms(e: np.ndarray) -> float | None:
         return round(float(np.sqrt(np.mean(e**2))), 6) if e.size else None
@@ -145,5 +152,7 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
         "direction_error_deg_p95": percentile(samples, 95),
         "direction_error_deg_p50_at_target": percentile(at_target, 50),
         "direction_error_deg_p95_at_target": percentile(at_target, 95),
+        "direction_error_deg_p50_latency_floor": percentile(seen_late, 50),
+        "direction_error_deg_p95_latency_floor": percentile(seen_late, 95),
         "judged_from_s": None if start is None else round(start * dt, 6),
     }

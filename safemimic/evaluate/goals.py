@@ -11,7 +11,7 @@ self barrier ≥ −1 mm, no robot-caused contact step, no approach step, true c
 the run without the CBF (0 where that run has none; floor: the steps with the person inside a
 body no imitation joint moves), no NaN. Imitation: lag ≤ latency + 20 ms, ``rms_true_free`` ≤
 0.05 rad (floor: the latency floor), arm direction p95 ≤ 15° (floor: the same at the target, the
-retargeting's own error).
+retargeting's own error, or at the target seen one latency late: that error and the latency's).
 """
 
 from __future__ import annotations
@@ -66,7 +66,8 @@ GOALS: tuple[Goal, ...] = (
     Goal("rms_true_free ≤ 0.05 rad", lambda r: _at_most(_fidelity(r, "rms_true_free"), 0.05),
          lambda r: _at_most(_fidelity(r, "rms_true_free_latency_floor"), 0.05) is False),
     Goal("arm direction p95 ≤ 15°", lambda r: _at_most(_fidelity(r, "direction_error_deg_p95"), 15.0),
-         lambda r: _at_most(_fidelity(r, "direction_error_deg_p95_at_target"), 15.0) is False),
+         lambda r: any(_at_most(_fidelity(r, f"direction_error_deg_p95_{floor}"), 15.0) is False
+                       for floor in ("at_target", "latency_floor"))),
 )
 
 

@@ -76,7 +76,7 @@ from typing import Any
 import numpy as np
 
 from safemimic.evaluate.episode import MODES, Episode
-from safemimic.evaluate.fidelity import direction_errors, fidelity
+from safemimic.evaluate.fidelity import delayed, direction_errors, fidelity
 from safemimic.evaluate.person import CameraModel, HumanTrack, TruePerson
 from safemimic.evaluate.source import EvaluationInput
 from safemimic.evaluate.truth import CLOSING_SPEED
@@ -150,14 +150,15 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
 
 
 def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, mirror: bool,
-                directions_at_target: np.ndarray, latency_s: float, in_view: np.ndarray) -> dict[str, Any]:
+                directions_at_target: tuple[np.ndarray, np.ndarray], latency_s: float,
+                in_view: np.ndarray) -> dict[str, Any]:
     """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by the ``*_free`` keys;
     ``person``: the true person; ``phi``: the safety margin (m); ``mirror``: facing the person;
     ``latency_s``: the camera latency (s) of the fidelity floor; ``in_view`` (N,): the perceived
     state in force shows the person (:meth:`HumanTrack.in_view`; fidelity is judged from 1 s after
     the first such step);
-    ``directions_at_target``: :func:`direction_errors` of the robot placed at q_true (the same for
-    every run of one input: :func:`target_directions`)."""
+    ``directions_at_target``: :func:`direction_errors` of the robot placed at q_true and at q_true
+    one latency late (the same for every run of one input: :func:`target_directions`)."""
     is_self = ep.pairs.is_self
     error = ep.q_cbf - ep.q_nom
     negative = np.nan_to_num(ep.h, nan=np.inf) < 0.0
@@ -184,16 +185,24 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         **truth_metrics(ep, phi),
         "fidelity": fidelity(person.q_true, ep.q_sim, free,
                              direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
-                             directions_at_target, in_view, float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 1.0,
-                             latency_s, q_nom=ep.q_nom, q_cbf=ep.q_cbf),
+                             directions_at_target[0], in_view, _step(ep.t), latency_s, q_nom=ep.q_nom,
+                             q_cbf=ep.q_cbf, directions_seen_late=directions_at_target[1]),
     }
     assert tuple(metrics) == RUN_KEYS
     return metrics
 
 
-def target_directions(person: TruePerson, mirror: bool) -> np.ndarray:
-    """(N, 4) deg: :func:`direction_errors` of the robot placed exactly at the true person's q_true."""
-    return direction_errors(person.keypoints, person.valid, person.robot_at_target, mirror)
+def _step(t: np.ndarray) -> float:
+    """The control period (s) of the time steps ``t`` (1 for a single step: nothing to delay)."""
+    return float(t[1] - t[0]) if len(t) > 1 else 1.0
+
+
+def target_directions(person: TruePerson, mirror: bool, latency_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 4) deg each: :func:`direction_errors` of the robot placed exactly at the true person's q_true,
+    and at q_true one camera latency ``latency_s`` late (against the person now: the latency floor)."""
+    late = delayed(person.robot_at_target, round(latency_s / _step(person.t)))
+    return (direction_errors(person.keypoints, person.valid, person.robot_at_target, mirror),
+            direction_errors(person.keypoints, person.valid, late, mirror))
 
 
 def input_metrics(
