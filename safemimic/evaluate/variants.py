@@ -215,7 +215,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.description = (
         __doc__.split("\n\n", 1)[1] + "\n"
-        "  safemimic variants ../shared/data/mocap variants/\n"
+        "  safemimic variants clips/ variants/\n"
         "  safemimic evaluate --suite variants/ --jobs 2 --out variants-eval"
     )
     parser.add_argument("source", type=Path, help="a recording (.npz) or a folder of them")
