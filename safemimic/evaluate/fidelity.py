@@ -133,8 +133,8 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
     q_true, q_sim, free = q_true[judged], q_sim[judged], free[judged]
     error = q_sim - q_true
     judged_free = [d[judged][free] for d in (directions, directions_at_target, directions_seen_late)]
-    both = np.isfinite(judged_free[0]) & np.isfinite(judged_free[1]) & np.isfinite(judged_free[2])
-    samples, at_target, seen_late = (d[both] for d in judged_free)
+    defined = np.isfinite(judged_free[0]) & np.isfinite(judged_free[1]) & np.isfinite(judged_free[2])
+    samples, at_target, seen_late = (d[defined] for d in judged_free)
 
     def rms(e: np.ndarray) -> float | None:
         return round(float(np.sqrt(np.mean(e**2))), 6) if e.size else None

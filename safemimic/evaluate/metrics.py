@@ -150,15 +150,14 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
 
 
 def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, mirror: bool,
-                directions_at_target: tuple[np.ndarray, np.ndarray], latency_s: float,
-                in_view: np.ndarray) -> dict[str, Any]:
+                target: tuple[np.ndarray, np.ndarray], latency_s: float, in_view: np.ndarray) -> dict[str, Any]:
     """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by the ``*_free`` keys;
     ``person``: the true person; ``phi``: the safety margin (m); ``mirror``: facing the person;
     ``latency_s``: the camera latency (s) of the fidelity floor; ``in_view`` (N,): the perceived
     state in force shows the person (:meth:`HumanTrack.in_view`; fidelity is judged from 1 s after
     the first such step);
-    ``directions_at_target``: :func:`direction_errors` of the robot placed at q_true and at q_true
-    one latency late (the same for every run of one input: :func:`target_directions`)."""
+    ``target``: :func:`direction_errors` of the robot placed at q_true and at q_true one latency
+    late (the same for every run of one input: :func:`target_directions`)."""
     is_self = ep.pairs.is_self
     error = ep.q_cbf - ep.q_nom
     negative = np.nan_to_num(ep.h, nan=np.inf) < 0.0
@@ -185,8 +184,8 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         **truth_metrics(ep, phi),
         "fidelity": fidelity(person.q_true, ep.q_sim, free,
                              direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
-                             directions_at_target[0], in_view, _step(ep.t), latency_s, q_nom=ep.q_nom,
-                             q_cbf=ep.q_cbf, directions_seen_late=directions_at_target[1]),
+                             target[0], in_view, _step(ep.t), latency_s, q_nom=ep.q_nom, q_cbf=ep.q_cbf,
+                             directions_seen_late=target[1]),
     }
     assert tuple(metrics) == RUN_KEYS
     return metrics
