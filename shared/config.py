@@ -306,6 +306,14 @@ class SafetyConfig(_Section):
         "the test variants every time). services/safety/standoff.py; docs/safety-measurements.md 'A standoff from "
         "the person'",
     )
+    human_speed_mps: float = Field(
+        default=1.6, ge=0, le=5.0,
+        description="speed and separation (m/s): near a person the tracking asks no joint for a speed it could not "
+        "brake from (at accel_max) before a person approaching at this speed reaches the robot; only the reference "
+        "u_ref is capped, in both directions (the rows and the QP's feasibility are untouched). 1.6 (the default): "
+        "ISO/TS 15066's and ISO 13855's walking speed; 0: off (the paper). services/safety/separation.py; "
+        "docs/safety-measurements.md 'Speed and separation'",
+    )
     human_timeout_s: float = Field(default=0.5, gt=0, le=60)
     lost_human_hold_s: float = Field(
         default=2.0, gt=0, le=60,

@@ -176,7 +176,7 @@ def test_health_and_config_read(api: ApiServer) -> None:
     safety = body["safety"]
     # the names, mapped onto the configuration explicitly
     assert set(safety) == {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_predict_s",
-                           "human_standoff_m", "dt", "enabled_pair_groups", "capsule_radii", "human_velocity_term",
+                           "human_standoff_m", "human_speed_mps", "dt", "enabled_pair_groups", "capsule_radii", "human_velocity_term",
                            "geometry", "sphere_k", "on_intrusion", "intrusion_backout_mps", "feedforward", "target_path"}
     assert safety["dt"] == pytest.approx(1.0 / body["config"]["safety"]["rate_hz"])
     assert safety["k"] == body["config"]["safety"]["gain"] and safety["w"] == body["config"]["safety"]["weights"]
@@ -245,6 +245,8 @@ def test_writes_need_the_token(api: ApiServer, method: str, path: str, body: dic
         ("/api/config/safety", {"human_predict_s": 2.0}, "human_predict_s"),
         ("/api/config/safety", {"human_standoff_m": -0.01}, "human_standoff_m"),
         ("/api/config/safety", {"human_standoff_m": 0.5}, "human_standoff_m"),
+        ("/api/config/safety", {"human_speed_mps": -0.5}, "human_speed_mps"),
+        ("/api/config/safety", {"human_speed_mps": 9.0}, "human_speed_mps"),
         ("/api/config/safety", {"dt": 0}, "dt"),
         ("/api/config/safety", {"dt": 2.0}, "dt"),
         ("/api/config/safety", {"enabled_pair_groups": ["elbows"]}, "enabled_pair_groups"),
@@ -380,6 +382,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
         "human_margin": 0.03,
         "human_predict_s": 0.0,
         "human_standoff_m": 0.07,
+        "human_speed_mps": 2.0,
         "enabled_pair_groups": ["human", "self_arms"],
         "capsule_radii": {"robot": {"left_forearm": 0.061, "torso": 0.12}, "human": {"torso": 0.16, "forearm": 0.055}},
         "human_velocity_term": False,
@@ -394,6 +397,7 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
     assert conf["safety"]["u_max"] == patch["u_max"] and conf["safety"]["accel_max"] == patch["accel_max"]
     assert conf["safety"]["self_margin"] == 0.004 and conf["safety"]["human_margin"] == 0.03
     assert conf["safety"]["human_predict_s"] == 0.0 and conf["safety"]["human_standoff_m"] == 0.07
+    assert conf["safety"]["human_speed_mps"] == 2.0
     assert conf["safety"]["enabled_pair_groups"] == ["self_arms", "human"]
     assert conf["safety"]["capsule_radii"] == {"left_forearm": 0.061, "torso": 0.12}
     assert conf["human"]["torso_radius"] == 0.16 and conf["human"]["forearm_radius"] == 0.055

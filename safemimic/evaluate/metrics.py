@@ -234,6 +234,7 @@ def input_metrics(
         "point_filter": PointFilterKind(conf.perception.point_filter.kind).value,
         "on_intrusion": IntrusionResponse(s.on_intrusion).value,
         "intrusion_backout_mps": s.intrusion_backout_mps,
+        "human_speed_mps": s.human_speed_mps,
         **camera.settings(),
         "self_pairs": int(np.count_nonzero(cbf.pairs.is_self)),
         "human_pairs": int(np.count_nonzero(~cbf.pairs.is_self)),

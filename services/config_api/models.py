@@ -87,6 +87,7 @@ SAFETY_FIELDS: dict[str, str] = {
     "human_margin": "safety.human_margin",
     "human_predict_s": "safety.human_predict_s",
     "human_standoff_m": "safety.human_standoff_m",
+    "human_speed_mps": "safety.human_speed_mps",
     "dt": "safety.rate_hz",  # dt = 1 / rate_hz
     "enabled_pair_groups": "safety.enabled_pair_groups",
     "capsule_radii.robot": "safety.capsule_radii",
@@ -113,7 +114,7 @@ RETARGET_FIELDS: dict[str, str] = {
 }
 #: Safety request fields whose value goes into the configuration unchanged.
 _DIRECT_SAFETY = {"gamma", "phi", "k", "w", "u_min", "u_max", "accel_max", "self_margin", "human_margin", "human_predict_s",
-                  "human_standoff_m", "human_velocity_term", "feedforward", "intrusion_backout_mps",
+                  "human_standoff_m", "human_speed_mps", "human_velocity_term", "feedforward", "intrusion_backout_mps",
                   "sphere_k"}
 #: Safety request fields that are a choice (an enum): the configuration takes the choice's value.
 _CHOICE_SAFETY = {"geometry", "on_intrusion", "target_path"}
@@ -181,6 +182,10 @@ class SafetyPatch(_Patch):
     human_standoff_m: _like(SafetyConfig, "human_standoff_m") = Field(
         None, description="the robot closes on no person capsule nearer than this by its own motion (m, beyond φ and the "
         "person margin); never a retreat; 0: none (the paper)"
+    )
+    human_speed_mps: _like(SafetyConfig, "human_speed_mps") = Field(
+        None, description="speed and separation: near a person no joint is asked for a speed it could not brake from "
+        "before a person approaching at this speed (m/s) arrives; 1.6: ISO/TS 15066's walking speed; 0: off (the paper)"
     )
     dt: Annotated[float, Strict(), Field(ge=DT_MIN, le=DT_MAX)] = Field(None, description="control period Δt (s) = 1 / control rate")
     enabled_pair_groups: Annotated[list[PairGroup], AfterValidator(_distinct)] = Field(
@@ -277,6 +282,7 @@ class SafetyParams(_View):
     human_margin: float
     human_predict_s: float
     human_standoff_m: float
+    human_speed_mps: float
     dt: float
     enabled_pair_groups: list[PairGroup]
     capsule_radii: CapsuleRadii
@@ -294,7 +300,7 @@ class SafetyParams(_View):
         return cls(
             gamma=s.gamma, phi=s.phi, k=s.gain, w=s.weights, u_min=s.u_min, u_max=s.u_max, accel_max=s.accel_max,
             self_margin=s.self_margin, human_margin=s.human_margin, human_predict_s=s.human_predict_s,
-            human_standoff_m=s.human_standoff_m, dt=1.0 / s.rate_hz,
+            human_standoff_m=s.human_standoff_m, human_speed_mps=s.human_speed_mps, dt=1.0 / s.rate_hz,
             enabled_pair_groups=s.enabled_pair_groups,
             capsule_radii=CapsuleRadii(
                 robot=s.capsule_radii,

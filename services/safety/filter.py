@@ -140,6 +140,7 @@ from services.safety.qp.box import (
 )
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
 from services.safety.protective_stop import VIOLATION_TOL, ProtectiveStop
+from services.safety.separation import cap_reference
 from services.safety.standoff import apply_standoff
 from shared.config import IntrusionResponse
 from shared.messages import SafetyMode
@@ -189,11 +190,12 @@ class FilterParams:
     on_intrusion: str = "stop"  # "stop" | "retreat" | "stop_on_give_way" (module docstring)
     intrusion_backout_mps: float = 0.0  # m/s an arm backs out of a still person in a stop (services.safety.protective_stop)
     human_standoff_m: float = 0.0  # m within which the robot closes on no person capsule (services.safety.standoff)
+    human_speed_mps: float = 0.0  # m/s of a person the tracking can stop for (services.safety.separation); 0: off
 
     def __post_init__(self) -> None:
         """Scalars as float, arrays as contiguous float64 (the compiled step's bound argument types)."""
         for name in ("gamma", "phi", "gain", "relax_penalty", "human_lookahead_s", "self_margin",
-                     "intrusion_backout_mps", "human_standoff_m"):
+                     "intrusion_backout_mps", "human_standoff_m", "human_speed_mps"):
             object.__setattr__(self, name, float(getattr(self, name)))
         for name in ("weights", "u_max", "u_min", "accel_max"):
             value = getattr(self, name)
@@ -216,6 +218,7 @@ class FilterParams:
             on_intrusion=IntrusionResponse(safety.on_intrusion).value,
             intrusion_backout_mps=safety.intrusion_backout_mps,
             human_standoff_m=safety.human_standoff_m,
+            human_speed_mps=safety.human_speed_mps,
         )
 
 
@@ -292,6 +295,7 @@ class SafetyFilter:
         self._stacked = np.empty((3, n + start))
         self._stacked[2, n:] = INF_BOUND
         self._views: dict[int, tuple] = {}
+        self._caps = np.empty(n)  # the speed and separation caps of a step (services.safety.separation)
         self._prepare, self._integrate = BoundKernel(prepare_qp), BoundKernel(integrate)
         # StepResult.relaxed of a step whose QP was feasible: no pair row gave way (shared, read-only)
         self._none_relaxed = np.zeros(barrier.n_rows, bool)
@@ -441,6 +445,10 @@ class SafetyFilter:
                                         self._stacked)
         lower, upper = self._box_views[bounded]
         A, b, stacked = self._qp_views(k)
+        if p.human_speed_mps > 0.0 and accel is not None and not stop and self.enforce:
+            # near a person, no tracking speed the joint could not stop from in time (module docstring)
+            cap_reference(rows.A, rows.h, rows.soft, rows.enabled, accel, p.human_speed_mps, p.weights, u_ref,
+                          stacked[0], self._caps)
         if stop and bounded:  # a protective stop brakes with the motors' full torque (module docstring)
             lower, upper, honours = reach_box(u_prev, accel, MOTOR_WIDENING, dt, self._limits[LOWER],
                                               self._limits[UPPER])

@@ -39,7 +39,8 @@ async def patch_safety(patch: SafetyPatch, actor: Writer, context: Context) -> C
     """Change CBF-QP parameters: ``gamma`` γ, ``phi`` φ, ``k`` K, ``w`` (diagonal of W), ``u_min`` /
     ``u_max``, ``dt``, ``enabled_pair_groups``, ``capsule_radii``, ``human_velocity_term``,
     ``human_predict_s`` (the person swept ahead, s; 0: as measured), ``human_standoff_m`` (m within
-    which the robot closes on no person capsule; 0: none), ``geometry`` (capsule | spheres |
+    which the robot closes on no person capsule; 0: none), ``human_speed_mps`` (m/s of a person the
+    robot slows down for near them; 0: off), ``geometry`` (capsule | spheres |
     box), ``sphere_k``, ``on_intrusion`` (stop | retreat | stop_on_give_way), ``intrusion_backout_mps`` (m/s a
     robot capsule backs out of a still person inside it; 0: none), ``feedforward`` (the target's
     velocity fed forward) and ``target_path`` (jump | continuous: q_nom between camera frames).

@@ -4,7 +4,7 @@
 
 const WINDOW_S = 10;            // plotted history (s)
 const MODE_COLORS = { nominal: "#2e8540", active: "#c77c02", relaxed: "#c0392b", hold: "#6c3483" };
-const SAFETY_NUMBERS = ["gamma", "phi", "self_margin", "human_margin", "human_predict_s", "human_standoff_m", "intrusion_backout_mps", "k", "dt"];  // safety form's numbers (API names)
+const SAFETY_NUMBERS = ["gamma", "phi", "self_margin", "human_margin", "human_predict_s", "human_standoff_m", "human_speed_mps", "intrusion_backout_mps", "k", "dt"];  // safety form's numbers (API names)
 const samples = [];             // {t, hSelf, hHuman, solve, mode}
 let loaded = null;              // the last GET /api/config response
 let dirty = false;              // a form was edited since it was filled
