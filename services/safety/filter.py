@@ -97,6 +97,10 @@ within the joint limits; :attr:`StepResult.settled`), so the servos do not close
 lag into the person, and the rows are evaluated there. Stops only lower soft rows' b, so the
 argument below holds as it is.
 
+**Speed and separation** (:mod:`services.safety.separation`, ``human_speed_mps``): outside a stop, near a
+person u_ref is clipped per joint to a speed that joint can brake from (at ``accel_max``) before a person
+approaching at v_h arrives. Only u_ref (and the QP's linear term) changes, so the argument below holds as it is.
+
 *Feasible by construction.* u = 0, σ_i = max(b_i, 0) satisfies every constraint of both stages
 whenever 0 lies in the box, which holds in the last box tried (the velocity box alone, the
 acceleration bound dropped; ū = 0 there) because q_cbf stays within the joint limits and
