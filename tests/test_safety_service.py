@@ -577,8 +577,9 @@ def test_a_continuous_target_path_applies_in_place_and_never_jumps_at_a_new_fram
     where it was and moves straight to the new state extrapolated one frame ahead, and that path's
     velocity v is fed forward, u_ref = v + K (q_nom − q_cbf)."""
     pipeline = service.pipeline
-    full = load_config(environ={}, overrides={"retargeting": {"method": "linear"},
-                                              "safety": {"target_path": "continuous"}}).model_dump(mode="json")
+    full = load_config(environ={}, overrides={"retargeting": {"method": "linear"},  # the path, not the speed cap
+                                              "safety": {"target_path": "continuous", "human_speed_mps": 0.0}}
+                       ).model_dump(mode="json")
     service.on_config(ConfigUpdate(stamp=0.0, version=2, config=full))
     service.tick()
     assert service.pipeline is pipeline and service.conf.safety.target_path is TargetPath.CONTINUOUS

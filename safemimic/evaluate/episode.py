@@ -58,7 +58,8 @@ class Episode:
     commanded safe target and velocity); ``h`` (N, m) m, every monitored pair's barrier at the
     step's start against the perceived person as measured (NaN: capsule missing; with
     ``safety.human_predict_s`` the rows hold that person swept ahead, whose h is at most this);
-    ``active`` (N, m) pair rows binding in the QP; ``binding`` (N,) some QP row binds (a pair or a joint barrier); ``mode``
+    ``active`` (N, m) pair rows binding in the QP; ``binding`` (N,) some QP row binds (a pair or a joint barrier) or the speed and separation cap
+    slowed the reference (``safety.human_speed_mps``): a constraint shaped the motion; ``mode``
     (N,) index into :data:`MODES`; ``qp_ms`` (N,) solve time (wall clock); ``human`` (N,) index
     of the perceived state in force (−1: none yet); ``settled`` (N,) the step first brought q_cbf
     to the robot's joints (a stop: the step then ran from q_cbf[k] − Δt u*[k], not from
@@ -264,6 +265,7 @@ def run_episode(
         if enforce and result.active_rows:
             ep.active[k] = per_pair(rows.enabled & (rows.A @ result.u - rows.b <= 1e-6), row_pair, n_rows, np.logical_or)
             ep.binding[k] = True
+        ep.binding[k] |= result.speed_capped
         ep.mode[k] = MODES.index(result.mode)
         ep.qp_ms[k] = result.qp_time_s * 1e3
         ep.human[k] = newest

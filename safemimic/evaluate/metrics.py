@@ -112,7 +112,8 @@ def _rms(error: np.ndarray) -> float:
 
 
 def free_steps(cbf: Episode) -> np.ndarray:
-    """(N,) bool: steps at which no constraint binds in the CBF run."""
+    """(N,) bool: steps at which no constraint binds in the CBF run (no QP row, and the speed and
+    separation cap does not slow the reference: :attr:`Episode.binding`)."""
     return ~cbf.binding
 
 

@@ -245,7 +245,8 @@ class StepResult:
     brought to the robot's joints this step, so |q_cbf − the previous q_cbf| ≤ 2 u_max Δt instead
     of u_max Δt (both: :mod:`services.safety.protective_stop`); ``backing_out``: the stop backed out
     of a person who stands still inside the arms' margins (some arm's person rows kept b_i ←
-    min(b_i, ``intrusion_backout_mps``) instead of 0)."""
+    min(b_i, ``intrusion_backout_mps``) instead of 0); ``speed_capped``: the speed and separation cap
+    slowed u_ref on some joint (:mod:`services.safety.separation`)."""
 
     q_cbf: np.ndarray
     u: np.ndarray
@@ -263,6 +264,7 @@ class StepResult:
     ddq: np.ndarray | None = None
     settled: bool = False
     backing_out: bool = False
+    speed_capped: bool = False
 
 
 class SafetyFilter:
@@ -449,9 +451,10 @@ class SafetyFilter:
                                         self._stacked)
         lower, upper = self._box_views[bounded]
         A, b, stacked = self._qp_views(k)
+        capped = 0
         if p.human_speed_mps > 0.0 and accel is not None and not stop and self.enforce:
             # near a person, no tracking speed the joint could not stop from in time (module docstring)
-            cap_reference(rows.A, rows.h, rows.soft, rows.enabled, accel, p.human_speed_mps, p.weights, u_ref,
+            capped = cap_reference(rows.A, rows.h, rows.soft, rows.enabled, accel, p.human_speed_mps, p.weights, u_ref,
                           stacked[0], self._caps)
         if stop and bounded:  # a protective stop brakes with the motors' full torque (module docstring)
             lower, upper, honours = reach_box(u_prev, accel, MOTOR_WIDENING, dt, self._limits[LOWER],
@@ -497,7 +500,7 @@ class SafetyFilter:
             intrusion = bool(person.any() and (rows.A[person] @ u >= -RELAXED_TOL).all())
         return StepResult(q_result, u, u_ref, mode, rows, active, qp_time, solution.status, relaxed, intrusion,
                           stop, gave_way, None if low_self == math.inf else low_self, ddq, settled is not None,
-                          backing_out)
+                          backing_out, capped > 0)
 
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
                       n_pair: int) -> tuple:
