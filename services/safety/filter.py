@@ -454,8 +454,8 @@ class SafetyFilter:
         capped = 0
         if p.human_speed_mps > 0.0 and accel is not None and not stop and self.enforce:
             # near a person, no tracking speed the joint could not stop from in time (module docstring)
-            capped = cap_reference(rows.A, rows.h, rows.soft, rows.enabled, accel, p.human_speed_mps, p.weights, u_ref,
-                          stacked[0], self._caps)
+            capped = cap_reference(rows.A, rows.h, rows.soft, rows.enabled, accel, p.human_speed_mps, p.weights,
+                                   u_ref, stacked[0], self._caps)
         if stop and bounded:  # a protective stop brakes with the motors' full torque (module docstring)
             lower, upper, honours = reach_box(u_prev, accel, MOTOR_WIDENING, dt, self._limits[LOWER],
                                               self._limits[UPPER])

@@ -18,7 +18,7 @@ left 68 of the side-stepping punches' 86 robot-caused contact steps, both direct
 v_h = ``safety.human_speed_mps`` (1.6 m/s, ISO/TS 15066's and ISO 13855's walking speed of a person; 0:
 off, the paper). It is a bound per joint, as though that joint alone moved: a heuristic, not a guarantee.
 
-It caps only the *reference*: u_ref_j ← clip(u_ref_j, lower_j, upper_j) by the caps above, and the QP's
+It caps only the *reference*: u_ref_j ← clip(u_ref_j, −c_j, c_j) by the caps above, and the QP's
 linear term f_j = −W_j u_ref_j with it. The rows, the velocity and acceleration boxes and the relaxation
 are untouched, so the feasibility argument of :mod:`services.safety.filter` holds as it is, and every
 safety row binds exactly as before: the cap can only make the robot track more slowly toward a person
@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.safety.qp.box import njit
+from services.safety.qp.box import njit  # numba's, imported after box.py sets numba's cache folder
 
 __all__ = ["STATIC_LEVER", "cap_reference", "speed_caps"]
 
