@@ -191,7 +191,8 @@ class JointCommand(Message):
     default for a sender without it). Schema version 2 added it.
 
     ``settled``: q was first brought to the robot's measured joints this tick (a stop
-    settling, :mod:`services.safety.filter`: the command moves to where the robot is), so q may
+    settling, or holding a joint its servo would push on, :mod:`services.safety.protective_stop`: the
+    command moves to where the robot is), so q may
     differ from the previous command by u_max·Δt more than the one step's rate limit. Schema
     version 3 added it.
     """

@@ -19,6 +19,7 @@ from scipy.optimize import linprog
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
 from services.safety.filter import MOTOR_WIDENING, movable_rows
+from services.safety.protective_stop import STILL_JOINT_SPEED
 from services.safety.human_memory import padded, swept_capsules
 from services.safety.qp import QPProblem
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
@@ -481,6 +482,67 @@ def test_a_protective_stop_brings_the_command_to_the_robot_twice_on_random_state
     free = alone.filter.step(kin.q_home, DT, None, kin.q_home + 3e-3)
     assert not free.protective_stop
     np.testing.assert_allclose(free.q_cbf, kin.q_home + DT * free.u, atol=1e-12)
+
+
+def stop_at_rest(p, rng: np.random.Generator, q: np.ndarray, q_nom: np.ndarray):
+    """Step a protective stop (the robot still, at q_cbf) until its command is at rest and its settle at
+    rest is done; the last result, or None if the stop ended first."""
+    for _ in range(round(0.5 / DT)):
+        result = p.filter.step(q_nom, DT, np.zeros_like(q_nom), p.filter.q_cbf.copy())
+        if not result.protective_stop:
+            return None
+        if p.filter.stops.follows:
+            return result
+    return None
+
+
+def test_in_a_stop_at_rest_the_servos_only_brake_on_random_states() -> None:
+    """Once a stop's command is at rest (and its settle at rest done), a joint is brought to the
+    robot exactly where its servo would push it along its motion — it moves faster than
+    STILL_JOINT_SPEED and the command lies ahead of it, (q_cbf − q_robot) v > 0 — by at most
+    [u_min, u_max]·Δt, and no other joint is, nor is any where a self row's h would be negative and
+    below where it is; the step runs from there (its hard rows hold). A joint
+    sagging or a measurement drifting away from the command is never followed, however long: the
+    command does not run away. Random intrusions on the real model, random joint velocities and
+    offsets."""
+    p = pipeline_for()
+    params, kin = p.filter.params, p.kinematics
+    lower = -params.u_max if params.u_min is None else params.u_min
+    rng = np.random.default_rng(38)
+    checked = followed = 0
+    for _ in range(30):
+        q = random_intrusion(p, rng)
+        q_nom = rng.uniform(kin.q_min, kin.q_max)
+        p.filter.reset(q)
+        if stop_at_rest(p, rng, q, q_nom) is None:
+            continue
+        q = p.filter.q_cbf.copy()
+        velocity = rng.uniform(-0.5, 0.5, q.shape) * np.where(rng.random(q.shape) < 0.3, 0.005, 1.0)
+        q_robot = q + rng.uniform(-0.01, 0.01, q.shape)
+        p.filter._q_robot_prev = q_robot - velocity * DT  # noqa: SLF001 (the robot moved at `velocity`)
+        expected = (np.abs(velocity) > STILL_JOINT_SPEED) & ((q - q_robot) * velocity > 0.0)
+        start = np.where(expected, np.clip(np.clip(q_robot, q + lower * DT, q + params.u_max * DT), kin.q_min, kin.q_max), q)
+        lowest_self = p.filter._write_rows(q)[3]  # noqa: SLF001 (the smallest self h, here and where it would follow)
+        if p.filter._write_rows(start)[3] < min(lowest_self, 0.0):  # noqa: SLF001
+            expected[:], start = False, q  # never followed into a self row
+        result = p.filter.step(q_nom, DT, np.zeros_like(q_nom), q_robot)
+        if not result.protective_stop:
+            continue
+        assert result.settled is bool(expected.any())
+        np.testing.assert_allclose(result.q_cbf, np.clip(start + DT * result.u, kin.q_min, kin.q_max), atol=1e-12)
+        A, b, soft = stacked(p, start)
+        assert (A[~soft] @ result.u >= b[~soft] - TOL).all(), "a hard row at the followed pose gave way"
+        checked += 1
+        followed += int(expected.any())
+        # sagging away from the command (and a measurement drifting away) for a second: never followed
+        held, away = result.q_cbf.copy(), rng.choice([-1.0, 1.0], q.shape) * rng.uniform(0.01, 0.5, q.shape)
+        p.filter._q_robot_prev = held.copy()  # noqa: SLF001 (the robot at the command, then sagging)
+        for k in range(1, round(1.0 / DT)):
+            result = p.filter.step(q_nom, DT, np.zeros_like(q_nom), held + away * k * DT)
+            if not result.protective_stop:
+                break
+            assert not result.settled, k
+    assert checked >= 10 and followed >= 5, (checked, followed)
 
 
 def person_rushing_in(p, rng: np.random.Generator, q: np.ndarray, *others) -> bool:

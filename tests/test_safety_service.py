@@ -21,6 +21,7 @@ import pytest
 from pydantic import ValidationError
 
 from services.perception.synthetic import skeleton
+from services.safety.protective_stop import STILL_JOINT_SPEED
 from services.safety.seen_motion import STILL_WINDOW_S
 from services.safety.retarget import Retargeter
 from services.safety.service import RESYNC_DONE, RESYNC_TOLERANCE, SafetyService
@@ -474,8 +475,9 @@ def test_a_protective_stop_begins_where_the_measured_robot_is(service: SafetySer
     """As a protective stop begins (a person's torso through the robot's left forearm), the command
     is first brought to the robot: the newest JointState's q extrapolated by its dq over the time
     since it arrived, by at most u_max·Δt per joint; once more on the stop's first tick after a
-    command at rest, never again in that stop; without a stop a robot a few mrad off q_cbf is left
-    to the servos."""
+    command at rest; after that only the joints whose servo would push them along their motion
+    (the command ahead of a moving joint), none while the robot stands still; without a stop a
+    robot a few mrad off q_cbf is left to the servos."""
     filt, period = service.pipeline.filter, service.period
     step_limit = np.asarray(service.conf.safety.u_max) * period
     home = filt.q_cbf.copy()
@@ -504,9 +506,19 @@ def test_a_protective_stop_begins_where_the_measured_robot_is(service: SafetySer
     robot = np.clip(q + lag + 0.006 * dq, settled - step_limit, settled + step_limit)
     np.testing.assert_allclose(result.q_cbf - period * result.u, robot, atol=1e-9)
     settled = result.q_cbf
-    result = service.tick(arrived + 0.008)  # and never again in this stop
-    assert result.protective_stop and not result.settled
-    np.testing.assert_allclose(result.q_cbf, settled + period * result.u, atol=1e-12)
+    result = service.tick(arrived + 0.008)  # after it, only the joints their servo would push on
+    assert result.protective_stop
+    robot = q + lag + 0.008 * dq
+    pushed = (np.abs(dq) > STILL_JOINT_SPEED) & ((settled - robot) * dq > 0.0)
+    assert pushed.any() and not pushed.all()
+    start = np.where(pushed, np.clip(robot, settled - step_limit, settled + step_limit), settled)
+    np.testing.assert_allclose(result.q_cbf - period * result.u, start, atol=1e-9)
+    assert result.settled
+    service.joint_state.set(JointState(stamp=0.0, q=robot, dq=np.zeros(8)))  # the robot now still
+    still = service.joint_state.get().received
+    service.tick(still + 0.001)
+    result = service.tick(still + 0.003)
+    assert result.protective_stop and not result.settled  # and never again while it stands still
 
 
 def assert_brakes_to_rest(service: SafetyService, u_before: np.ndarray, u: np.ndarray) -> None:

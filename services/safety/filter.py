@@ -91,10 +91,12 @@ monitoring): a step aims at rest (u_ref = 0) and every robot–person row keeps 
 b_i ← min(b_i, 0), while a person is inside the margin of a robot capsule no joint moves (or will
 be within the look-ahead) or, with ``on_intrusion`` "stop" (the default), inside any robot
 capsule's margin; a person who has stood still inside the arms' margins only is backed out of
-(b_i ← min(b_i, ``intrusion_backout_mps``)). On a stop's first step, and once its command is at rest, q_cbf is
-first brought to the robot's measured joints ``q_robot`` (at most [u_min, u_max]·Δt per joint,
-within the joint limits; :attr:`StepResult.settled`), so the servos do not close their tracking
-lag into the person, and the rows are evaluated there. Stops only lower soft rows' b, so the
+(b_i ← min(b_i, ``intrusion_backout_mps``)). On a stop's first step and once its command is at
+rest, q_cbf is first brought to the robot's measured joints ``q_robot``, and after that, while the
+steps aim at rest, each joint its servo would push along its motion (at most [u_min, u_max]·Δt per
+joint, within the joint limits; :attr:`StepResult.settled`), so the servos neither close their
+tracking lag into the person nor pull an overshooting joint back into them: they only brake. The
+rows are evaluated there. Stops only lower soft rows' b, so the
 argument below holds as it is.
 
 **Speed and separation** (:mod:`services.safety.separation`, ``human_speed_mps``): outside a stop, near a
@@ -143,7 +145,7 @@ from services.safety.qp.box import (
     HIGH, LOW, LOWER, U_MAX, U_MIN, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
 )
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
-from services.safety.protective_stop import VIOLATION_TOL, ProtectiveStop
+from services.safety.protective_stop import STILL_JOINT_SPEED, VIOLATION_TOL, ProtectiveStop
 from services.safety.separation import cap_reference
 from services.safety.standoff import apply_standoff
 from shared.config import IntrusionResponse
@@ -322,6 +324,7 @@ class SafetyFilter:
         self._qp: QPBackend = make_backend(backend)
         self._relaxation = LexicographicSolver()  # DAQP whatever the backend (services.safety.relaxation)
         self._u_prev: np.ndarray | None = None  # the last step's u* (None: no acceleration bound this step)
+        self._q_robot_prev: np.ndarray | None = None  # the last step's q_robot (None: unknown)
 
     @property
     def params(self) -> FilterParams:
@@ -355,7 +358,7 @@ class SafetyFilter:
         q = np.asarray(q, dtype=np.float64)
         if q.shape == self.q_cbf.shape and np.isfinite(q).all():
             self.q_cbf = np.clip(q, self.q_min, self.q_max)
-            self._u_prev = None
+            self._u_prev = self._q_robot_prev = None
             self.stops.reset()
 
     def blocks_at(self, q: np.ndarray) -> list[RowBlock]:
@@ -397,15 +400,38 @@ class SafetyFilter:
             rows.b += self._shift[: rows.b.shape[0]]
         return A_all, b_all, inside, low_self, rows
 
-    def _settle_pose(self, q: np.ndarray, q_robot: np.ndarray, dt: float) -> np.ndarray | None:
-        """q_cbf brought to the robot on a settling step (:meth:`ProtectiveStop.settles`):
-        ``q_robot`` (n,) clipped to q ± [u_min, u_max]·Δt and to the joint
-        limits; None when ``q_robot`` is not a finite (n,) array (the stop then holds q_cbf)."""
+    def _settle_pose(self, q: np.ndarray, q_robot: np.ndarray, dt: float,
+                     joints: np.ndarray | None = None) -> np.ndarray | None:
+        """q_cbf brought to the robot on a settling step (:meth:`ProtectiveStop.settles`; only the
+        ``joints`` mask, when given: :attr:`ProtectiveStop.follows`): ``q_robot`` (n,) clipped to
+        q ± [u_min, u_max]·Δt and to the joint limits; None when ``q_robot`` is not a finite (n,)
+        array (the stop then holds q_cbf)."""
         q_robot = np.asarray(q_robot, dtype=np.float64)
         if q_robot.shape != q.shape or not np.isfinite(q_robot).all():
             return None
         limits = self._limits  # its velocity rows: u_min (None: −u_max) and u_max
-        return np.clip(np.clip(q_robot, q + limits[U_MIN] * dt, q + limits[U_MAX] * dt), self.q_min, self.q_max)
+        settled = np.clip(np.clip(q_robot, q + limits[U_MIN] * dt, q + limits[U_MAX] * dt), self.q_min, self.q_max)
+        return settled if joints is None else np.where(joints, settled, q)
+
+    def _robot_velocity(self, q_robot: np.ndarray | None, dt: float) -> np.ndarray | None:
+        """The robot's joint velocities (n,) rad/s: ``q_robot``'s change since the last step's over
+        ``dt`` (None: either unknown); remembers ``q_robot`` for the next step."""
+        last = self._q_robot_prev
+        self._q_robot_prev = None if q_robot is None else np.array(q_robot, dtype=np.float64)
+        if last is None or self._q_robot_prev is None or self._q_robot_prev.shape != last.shape:
+            return None
+        return (self._q_robot_prev - last) / dt
+
+    @staticmethod
+    def _followed_joints(q: np.ndarray, q_robot: np.ndarray | None, velocity: np.ndarray | None) -> np.ndarray | None:
+        """The joints whose servo would push them along their motion (``velocity`` (n,) rad/s, faster
+        than :data:`~services.safety.protective_stop.STILL_JOINT_SPEED`, with the command ``q`` ahead
+        of ``q_robot``: (q_j − q_robot,j) v_j > 0), as a mask; None if there is none (or the velocity
+        is unknown; NaN compares false)."""
+        if q_robot is None or velocity is None or velocity.shape != q.shape:
+            return None
+        mask = (np.abs(velocity) > STILL_JOINT_SPEED) & ((q - q_robot) * velocity > 0.0)
+        return mask if mask.any() else None
 
     def step(self, q_nom: np.ndarray, dt: float, dq_nom: np.ndarray | None = None,
              q_robot: np.ndarray | None = None) -> StepResult:
@@ -413,7 +439,8 @@ class SafetyFilter:
         target's velocity, is fed forward (u_ref = dq_nom + K (q_nom − q_cbf); None: K only).
         ``q_robot`` (n,) rad: the robot's joints at this step (measured, extrapolated to now; None:
         unknown), to which q_cbf is brought as a protective stop begins and once a command aiming
-        at rest is at rest (:mod:`services.safety.protective_stop`).
+        at rest is at rest, and after that joint by joint where the servo would push the joint
+        along its motion (:mod:`services.safety.protective_stop`).
 
         Every barrier writes its rows into the stacked A, b, soft, h (:meth:`Barrier.write_rows`);
         u_ref, the first velocity box and the rows a velocity can move, in the QP solver's layout, come
@@ -426,10 +453,20 @@ class SafetyFilter:
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
         stop, fixed_stop = self.stops.decide(b_all, rows, p.on_intrusion) if self.enforce else (False, False)
         settled, backing_out = None, False
+        velocity = self._robot_velocity(q_robot, dt)
         if self.stops.settles(stop, self._u_prev) and q_robot is not None:  # q_cbf brought to the robot
             settled = self._settle_pose(q, q_robot, dt)
             if settled is not None:
                 q = self.q_cbf = settled
+                A_all, b_all, inside, low_self, rows = self._write_rows(q)
+        elif self.stops.follows and (joints := self._followed_joints(q, q_robot, velocity)) is not None:
+            followed = self._settle_pose(q, q_robot, dt, joints)  # the servos only brake ...
+            written = None if followed is None else self._write_rows(followed)
+            if written is not None and written[3] >= min(low_self, 0.0):  # ... never into a self row
+                settled, q = followed, followed
+                self.q_cbf = q
+                A_all, b_all, inside, low_self, rows = written
+            elif written is not None:
                 A_all, b_all, inside, low_self, rows = self._write_rows(q)
         if stop:  # the protective stop (services.safety.protective_stop): rest is the target, person rows their floor
             q_nom, dq_nom = q, self._rest

@@ -103,21 +103,41 @@ noisy camera: most robot-caused contact steps were u* = 0 with a joint still con
 q_cbf). A step *aims at rest* when it is a protective stop (any of the above) or a relaxed step
 whose person rows gave way (stage 2 aimed at ū). q_cbf is first brought to the robot's joints
 ``q_robot`` (measured, extrapolated to the step by their velocity; the caller's) on the first step
-of a protective stop decided from its rows, and once on the first step after one that aimed at
-rest and commanded it (|u*| ≤ :data:`AT_REST`: the braking is over, the lag it left is not),
-once per run of steps aiming at rest. It is moved by at most [u_min, u_max]·Δt per joint and kept
-within the joint limits; the rows are evaluated there and the step runs from there, its u* still
-braking from u_prev within the stop's box. The command moves to where the robot already
-is, so the robot does not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those steps
-(:attr:`~services.safety.filter.StepResult.settled` says which; the service's command carries
-it). Twice per run of steps aiming at rest at most, and never while imitating: a servo with a
-steady error (gravity it does not compensate) would sag by that error at every settle, and a command at rest during imitation
-(a still person, K (q_nom − q_cbf) decayed to nothing) settling onto a servo stuck within its
-friction would start a slow cycle. A missing or non-finite ``q_robot`` settles nothing. Measured
-(docs/safety-measurements.md "The stop holds the robot where it is"): with a noisy camera robot-caused contact steps
-289 → 51 and approach steps 298 → 78 over three seeds. Every row is evaluated at the settled
-pose, so the feasibility argument holds there as it is (a hard row the few mrad carried past its
-boundary, which the self margin makes unlikely, is a violated one and softened as such).
+of a protective stop decided from its rows, and on the first step after one that aimed at rest and
+commanded it (|u*| ≤ :data:`AT_REST`: the braking is over, the lag it left is not).
+
+**The servos only brake.** Braked with the motors' full torque, a joint still moves when its
+command is at rest (a shoulder at 0.8 rad/s, the waist at 0.3 rad/s, traced on the sword
+walk-through with a noisy camera); it passes the pose it was brought to, its servo (ζ ≈ 0.55 at
+the shoulder pitch) pulls it back, and that return, for a few hundred milliseconds at up to 10 mm/s,
+carried the robot into the person the stop was for. So after that settle, while the steps go on
+aiming at rest, a joint j is brought to the robot again on every step at which its servo would
+push it along the way it moves: it moves (|v_j| > :data:`STILL_JOINT_SPEED`, v_j = its
+``q_robot`` change since the last step / Δt) and the command lies ahead of it,
+(q_cbf,j − q_robot,j) v_j > 0 — the lag of a joint still closing on its command, or the return
+after an overshoot. There the servo's spring is zeroed and its damping brakes the joint; where
+the spring opposes the motion (an overshooting joint, a joint sagging away from its command under
+gravity it does not compensate, a measurement drifting away) the command holds, so the spring
+brakes it. Following never adds motion: it moves a joint's command only onto where the joint
+already is, behind the way it is going, and so it cannot run away (a sagging joint or a drifting
+measurement is never followed, whatever the time). Never while imitating (a command at rest
+during imitation, a still person, settling onto a servo stuck within its friction would start a
+slow cycle). Nor into the robot itself: a follow that would put the command where some
+self-collision row's h is negative and lower than it is (the servo's overshoot carried an arm into
+the torso's φ) is not made, so the stop keeps the robot out of itself as its rows do.
+
+Each settle moves q_cbf by at most [u_min, u_max]·Δt per joint and keeps it within the joint
+limits; the rows are evaluated there and the step runs from there, its u* still braking from
+u_prev within the stop's box. The command moves to where the robot already is, so the robot does
+not jump; |q_cbf⁺ − q_cbf| ≤ 2 u_max Δt on those steps (:attr:`~services.safety.filter.StepResult.settled`
+says which; the service's command carries it). A missing or non-finite ``q_robot`` settles
+nothing. Measured (docs/safety-measurements.md "The stop holds the robot where it is"): with a
+noisy camera robot-caused contact steps 289 → 51 and approach steps 298 → 78 over three seeds with
+the two settles; with the servos only braking, on the 56 test variants with a noisy camera 762 → 338
+and 759 → 353. Every row is
+evaluated at the settled pose, so the feasibility argument holds there as it is (a hard row the
+few mrad carried past its boundary, which the self margin makes unlikely, is a violated one and
+softened as such).
 """
 
 from __future__ import annotations
@@ -138,6 +158,9 @@ VIOLATION_TOL = 1e-3
 STILL_SPEED = 0.15
 #: a command whose every |u*| is at most this (rad/s) is at rest (a protective stop's braking is over)
 AT_REST = 1e-9
+#: a joint that moved at most this fast (rad/s) since the step before is still ("The servos only brake"):
+#: above a measurement's step-to-step noise, below the servos' settling speeds
+STILL_JOINT_SPEED = 0.005
 
 
 def intruded(rows: BarrierRows) -> bool:
@@ -223,6 +246,12 @@ class ProtectiveStop:
             return False
         self._rested = True
         return True
+
+    @property
+    def follows(self) -> bool:
+        """Whether this step brings to the robot the joints its servo would push along their motion
+        ("The servos only brake"): the steps aim at rest and their settle at rest was done."""
+        return self._aimed_rest and self._rested
 
     def stepped(self, aimed_rest: bool) -> None:
         """Record that the step just taken aimed at rest (a protective stop, or a relaxed step whose

@@ -22,7 +22,8 @@ Every tick (default 500 Hz, ``safety.rate_hz``):
    published on ``robot/command`` (a non-finite one is replaced by the last command, counted).
    Every command differs from the previous one by at most u_max·Δt per joint, except on the ticks
    of a stop that first move q_cbf by at most u_max·Δt more onto the robot's measured joints
-   (a protective stop's first, and the first after a command aiming at rest is at rest; the newest
+   (a protective stop's first, the first after a command aiming at rest is at rest, and after it those
+   at which a servo would push its joint along its motion; the newest
    JointState extrapolated by its dq, :meth:`_robot_at`; the filter's module docstring says why),
    which the command says (``JointCommand.settled``);
 5. at ``safety.status_rate_hz``, a :class:`~shared.messages.SafetyStatus`, with that tick's q_nom
