@@ -503,8 +503,8 @@ def test_in_a_stop_at_rest_the_servos_only_brake_on_random_states() -> None:
     [u_min, u_max]·Δt, and no other joint is, nor is any where a self row's h would be negative and
     below where it is; the step runs from there (its hard rows hold). A joint
     sagging or a measurement drifting away from the command is never followed, however long: the
-    command does not run away. Random intrusions on the real model, random joint velocities and
-    offsets."""
+    command does not run away; a non-finite pose follows nothing. Random intrusions on the real
+    model, random joint velocities and offsets."""
     p = pipeline_for()
     params, kin = p.filter.params, p.kinematics
     lower = -params.u_max if params.u_min is None else params.u_min
@@ -534,6 +534,10 @@ def test_in_a_stop_at_rest_the_servos_only_brake_on_random_states() -> None:
         assert (A[~soft] @ result.u >= b[~soft] - TOL).all(), "a hard row at the followed pose gave way"
         checked += 1
         followed += int(expected.any())
+        # a non-finite robot pose follows nothing, nor does the first pose after it (no velocity)
+        lost = p.filter.step(q_nom, DT, np.zeros_like(q_nom), np.full_like(q, np.nan))
+        back = p.filter.step(q_nom, DT, np.zeros_like(q_nom), result.q_cbf + 0.01)
+        assert not (lost.settled or back.settled)
         # sagging away from the command (and a measurement drifting away) for a second: never followed
         held, away = result.q_cbf.copy(), rng.choice([-1.0, 1.0], q.shape) * rng.uniform(0.01, 0.5, q.shape)
         p.filter._q_robot_prev = held.copy()  # noqa: SLF001 (the robot at the command, then sagging)

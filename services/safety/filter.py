@@ -413,23 +413,17 @@ class SafetyFilter:
         settled = np.clip(np.clip(q_robot, q + limits[U_MIN] * dt, q + limits[U_MAX] * dt), self.q_min, self.q_max)
         return settled if joints is None else np.where(joints, settled, q)
 
-    def _robot_velocity(self, q_robot: np.ndarray | None, dt: float) -> np.ndarray | None:
-        """The robot's joint velocities (n,) rad/s: ``q_robot``'s change since the last step's over
-        ``dt`` (None: either unknown); remembers ``q_robot`` for the next step."""
-        last = self._q_robot_prev
-        self._q_robot_prev = None if q_robot is None else np.array(q_robot, dtype=np.float64)
-        if last is None or self._q_robot_prev is None or self._q_robot_prev.shape != last.shape:
-            return None
-        return (self._q_robot_prev - last) / dt
-
     @staticmethod
-    def _followed_joints(q: np.ndarray, q_robot: np.ndarray | None, velocity: np.ndarray | None) -> np.ndarray | None:
-        """The joints whose servo would push them along their motion (``velocity`` (n,) rad/s, faster
-        than :data:`~services.safety.protective_stop.STILL_JOINT_SPEED`, with the command ``q`` ahead
-        of ``q_robot``: (q_j − q_robot,j) v_j > 0), as a mask; None if there is none (or the velocity
-        is unknown; NaN compares false)."""
-        if q_robot is None or velocity is None or velocity.shape != q.shape:
+    def _followed_joints(q: np.ndarray, q_robot: np.ndarray | None, last: np.ndarray | None,
+                         dt: float) -> np.ndarray | None:
+        """The joints whose servo would push them along their motion: moving (v = (``q_robot`` −
+        ``last``)/``dt``, the robot's joints (n,) rad at this step and the last) faster than
+        :data:`~services.safety.protective_stop.STILL_JOINT_SPEED`, with the command ``q`` ahead of
+        ``q_robot``, (q_j − q_robot,j) v_j > 0; as a mask, None if there is none or either pose is
+        unknown (a NaN compares false)."""
+        if q_robot is None or last is None or q_robot.shape != q.shape or last.shape != q.shape:
             return None
+        velocity = (q_robot - last) / dt
         mask = (np.abs(velocity) > STILL_JOINT_SPEED) & ((q - q_robot) * velocity > 0.0)
         return mask if mask.any() else None
 
@@ -453,13 +447,13 @@ class SafetyFilter:
         soft_all, accel, shift, shifted = self._soft_all, p.accel_max, self._shift, p.self_margin > 0.0
         stop, fixed_stop = self.stops.decide(b_all, rows, p.on_intrusion) if self.enforce else (False, False)
         settled, backing_out = None, False
-        velocity = self._robot_velocity(q_robot, dt)
+        last, self._q_robot_prev = self._q_robot_prev, None if q_robot is None else np.array(q_robot, dtype=np.float64)
         if self.stops.settles(stop, self._u_prev) and q_robot is not None:  # q_cbf brought to the robot
             settled = self._settle_pose(q, q_robot, dt)
             if settled is not None:
                 q = self.q_cbf = settled
                 A_all, b_all, inside, low_self, rows = self._write_rows(q)
-        elif self.stops.follows and (joints := self._followed_joints(q, q_robot, velocity)) is not None:
+        elif self.stops.follows and (joints := self._followed_joints(q, self._q_robot_prev, last, dt)) is not None:
             followed = self._settle_pose(q, q_robot, dt, joints)  # the servos only brake ...
             written = None if followed is None else self._write_rows(followed)
             if written is not None and written[3] >= min(low_self, 0.0):  # ... never into a self row
