@@ -457,8 +457,7 @@ class SafetyFilter:
             followed = self._settle_pose(q, q_robot, dt, joints)  # the servos only brake ...
             written = None if followed is None else self._write_rows(followed)
             if written is not None and written[3] >= min(low_self, 0.0):  # ... never into a self row
-                settled, q = followed, followed
-                self.q_cbf = q
+                settled = q = self.q_cbf = followed
                 A_all, b_all, inside, low_self, rows = written
             elif written is not None:
                 A_all, b_all, inside, low_self, rows = self._write_rows(q)
