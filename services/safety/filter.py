@@ -145,7 +145,7 @@ from services.safety.qp.box import (
     HIGH, LOW, LOWER, U_MAX, U_MIN, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
 )
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
-from services.safety.protective_stop import STILL_JOINT_SPEED, VIOLATION_TOL, ProtectiveStop
+from services.safety.protective_stop import VIOLATION_TOL, ProtectiveStop, pushed_joints
 from services.safety.separation import cap_reference
 from services.safety.standoff import apply_standoff
 from shared.config import IntrusionResponse
@@ -413,20 +413,6 @@ class SafetyFilter:
         settled = np.clip(np.clip(q_robot, q + limits[U_MIN] * dt, q + limits[U_MAX] * dt), self.q_min, self.q_max)
         return settled if joints is None else np.where(joints, settled, q)
 
-    @staticmethod
-    def _followed_joints(q: np.ndarray, q_robot: np.ndarray | None, last: np.ndarray | None,
-                         dt: float) -> np.ndarray | None:
-        """The joints whose servo would push them along their motion: moving (v = (``q_robot`` −
-        ``last``)/``dt``, the robot's joints (n,) rad at this step and the last) faster than
-        :data:`~services.safety.protective_stop.STILL_JOINT_SPEED`, with the command ``q`` ahead of
-        ``q_robot``, (q_j − q_robot,j) v_j > 0; as a mask, None if there is none or either pose is
-        unknown (a NaN compares false)."""
-        if q_robot is None or last is None or q_robot.shape != q.shape or last.shape != q.shape:
-            return None
-        velocity = (q_robot - last) / dt
-        mask = (np.abs(velocity) > STILL_JOINT_SPEED) & ((q - q_robot) * velocity > 0.0)
-        return mask if mask.any() else None
-
     def step(self, q_nom: np.ndarray, dt: float, dq_nom: np.ndarray | None = None,
              q_robot: np.ndarray | None = None) -> StepResult:
         """One control step towards ``q_nom`` (n,) over ``dt`` seconds; ``dq_nom`` (n,) rad/s, the
@@ -453,7 +439,7 @@ class SafetyFilter:
             if settled is not None:
                 q = self.q_cbf = settled
                 A_all, b_all, inside, low_self, rows = self._write_rows(q)
-        elif self.stops.follows and (joints := self._followed_joints(q, self._q_robot_prev, last, dt)) is not None:
+        elif self.stops.follows and (joints := pushed_joints(q, self._q_robot_prev, last, dt)) is not None:
             followed = self._settle_pose(q, q_robot, dt, joints)  # the servos only brake ...
             written = None if followed is None else self._write_rows(followed)
             if written is not None and written[3] >= min(low_self, 0.0):  # ... never into a self row

@@ -163,6 +163,20 @@ AT_REST = 1e-9
 STILL_JOINT_SPEED = 0.005
 
 
+def pushed_joints(q: np.ndarray, q_robot: np.ndarray | None, last: np.ndarray | None,
+                  dt: float) -> np.ndarray | None:
+    """The joints whose servo would push them along their motion ("The servos only brake"): moving
+    (v = (``q_robot`` − ``last``)/``dt``, the robot's joints (n,) rad at this step and the last)
+    faster than :data:`STILL_JOINT_SPEED`, with the command ``q`` ahead of ``q_robot``,
+    (q_j − q_robot,j) v_j > 0; as a mask, None if there is none or either pose is unknown (a NaN
+    compares false)."""
+    if q_robot is None or last is None or q_robot.shape != q.shape or last.shape != q.shape:
+        return None
+    velocity = (q_robot - last) / dt
+    mask = (np.abs(velocity) > STILL_JOINT_SPEED) & ((q - q_robot) * velocity > 0.0)
+    return mask if mask.any() else None
+
+
 def intruded(rows: BarrierRows) -> bool:
     """Whether a person capsule is inside a robot capsule's margin: some enabled robot–person
     row of the pair barrier's ``rows`` has h < −:data:`VIOLATION_TOL` (the intrusion stop). A row
