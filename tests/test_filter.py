@@ -8,6 +8,7 @@ import pytest
 
 from services.safety.filter import movable_rows
 from services.safety.qp import QPProblem, make_backend
+from services.safety.qp.box import braking_box, reach_box
 from shared.messages import SafetyMode
 from tests.support.pipelines import DT, alone_at, pipeline_for
 
@@ -146,3 +147,21 @@ def test_ramp_is_tracked_without_lag_with_feedforward(feedforward: bool) -> None
         assert np.abs(steady).max() < 1e-3 * abs(rate[2]) / gain, steady[-1]
     else:  # the K-only loop trails by v/K
         np.testing.assert_allclose(steady, rate[2] / gain, rtol=1e-3)
+
+
+def test_a_braking_box_is_never_empty_and_keeps_its_point_nearest_rest_on_random_boxes() -> None:
+    """:func:`braking_box` on random boxes as the filter builds them (a velocity box holding 0,
+    narrowed for the joint limits; the acceleration bound's reach ×f from a random u_prev, some
+    wholly beyond the box): never empty, within [min(u_prev, 0), max(u_prev, 0)], and its point
+    nearest rest is the box's (the braking point, and the feasibility argument, unchanged)."""
+    rng = np.random.default_rng(7)
+    for _ in range(2000):
+        n = 8
+        lower, upper = -rng.uniform(0.0, 5.0, n), rng.uniform(0.0, 5.0, n)
+        u_prev = rng.uniform(-8.0, 8.0, n)
+        accel, factor = rng.uniform(1.0, 300.0, n), rng.choice([1.0, 2.0, 4.0, 16.0])
+        low, high, _ = reach_box(u_prev, accel, factor, DT, lower, upper)
+        narrow_low, narrow_high = braking_box(low, high, u_prev)
+        assert (narrow_low <= narrow_high).all()
+        assert (narrow_low >= np.minimum(u_prev, 0.0)).all() and (narrow_high <= np.maximum(u_prev, 0.0)).all()
+        np.testing.assert_array_equal(np.clip(0.0, narrow_low, narrow_high), np.clip(0.0, low, high))

@@ -18,7 +18,7 @@ from scipy.optimize import linprog
 
 from services.safety.barriers.joints import JointBarrier
 from services.safety.barriers.static import StaticCapsuleBarrier
-from services.safety.filter import MOTOR_WIDENING, movable_rows
+from services.safety.filter import ACCEL_BOUND, MOTOR_WIDENING, movable_rows
 from services.safety.protective_stop import STILL_JOINT_SPEED
 from services.safety.human_memory import padded, swept_capsules
 from services.safety.qp import QPProblem
@@ -248,21 +248,27 @@ def person_in_the_legs(p, rng: np.random.Generator, q: np.ndarray, inside: bool 
     p.barrier.set_external(capsules, np.full(7, 0.05), np.arange(7) == 0 if not inside else np.ones(7, bool), velocities)
 
 
-def stop_rows(p) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(A, b, soft, brake) of ``p``'s next step, from its q_cbf and previous command: the stacked rows
-    as the barriers write them and the hardest braking the acceleration bound allows."""
+def stop_rows(p, full_torque: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, b, soft, brake) of ``p``'s next step, a protective stop, from its q_cbf and previous
+    command: the stacked rows as the barriers write them and the hardest braking the stop's box
+    allows: a stop decided from the rows, the acceleration bound ×2 (the motors' full torque); not
+    ``full_torque`` (a stop when person rows give way, decided in the relaxed solve, or one backing
+    out, whose relaxed solve starts at ×1), the bound."""
     q = p.filter.q_cbf.copy()
     A, b, soft = stacked(p, q)
-    bounded_lower, bounded_upper, _ = next(p.filter._boxes(q, DT))  # noqa: SLF001
-    return A, b, soft, np.clip(0.0, bounded_lower, bounded_upper)
+    boxes = p.filter._boxes(q, DT)  # noqa: SLF001
+    lower, upper, _ = next(boxes)
+    if full_torque:
+        lower, upper, _ = next(boxes)
+    return A, b, soft, np.clip(0.0, lower, upper)
 
 
 def assert_a_stop_that_never_closes_in(result, A: np.ndarray, b: np.ndarray, soft: np.ndarray,
                                        brake: np.ndarray) -> None:
     """``result`` (a step from the rows of :func:`stop_rows`) is a protective stop aiming at rest
     (u_ref = 0), finite, not HOLD; the hard rows hold and no person row is approached faster than
-    braking as hard as the acceleration bound allows (its floor min(b_i, 0), retreat demands b_i > 0
-    included; a stop's plain step keeps min(b_i, 0) itself, in the bound ×2)."""
+    braking as hard as the motors allow (its floor min(b_i, 0, A_i ū), ū the point nearest rest of
+    the bound ×2, retreat demands b_i > 0 included; a stop's plain step keeps min(b_i, 0) itself)."""
     assert result.protective_stop and np.isfinite(result.u).all() and result.mode is not SafetyMode.HOLD
     np.testing.assert_array_equal(result.u_ref, 0.0)
     lhs = A @ result.u
@@ -272,22 +278,33 @@ def assert_a_stop_that_never_closes_in(result, A: np.ndarray, b: np.ndarray, sof
         assert (lhs[soft] >= floor - TOL).all(), "the robot closed in on a person capsule"
 
 
-def assert_stops_without_retreat(p, q: np.ndarray, q_nom: np.ndarray, u_prev: np.ndarray) -> None:
+def assert_stops_without_retreat(p, q: np.ndarray, q_nom: np.ndarray, u_prev: np.ndarray,
+                                 give_way: bool = False) -> None:
     """From ``q`` moving at ``u_prev`` with the imitation pulling to ``q_nom`` and the person the
     barrier holds: the step is a protective stop aiming at rest (u_ref = 0), finite, not HOLD; the
     hard rows hold and no person row is approached faster than braking as hard as the acceleration
-    bound allows (its floor min(b_i, 0), retreat demands b_i > 0 included: none is demanded); the
-    robot is at rest within 0.5 s."""
+    bound allows (its floor min(b_i, 0), retreat demands b_i > 0 included: none is demanded); every
+    step only brakes, each joint's velocity between rest and the step before's, never faster and
+    never turned back (where the relaxed solve takes over too); the robot is at rest within 0.5 s.
+    ``give_way``: the stop is the one when person rows give way (:func:`stop_rows`)."""
     p.filter.reset(q)
     p.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
-    rows = stop_rows(p)
+    rows = stop_rows(p, full_torque=not give_way)
     result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
     assert_a_stop_that_never_closes_in(result, *rows)
     for _ in range(round(0.5 / DT)):
+        assert_only_brakes(result, u_prev)
+        u_prev = result.u
         result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
         if not np.abs(result.u).max() > 1e-6:
             break
     np.testing.assert_allclose(result.u, 0.0, atol=1e-6)  # at rest within 0.5 s
+
+
+def assert_only_brakes(result, u_prev: np.ndarray) -> None:
+    """A protective stop's step (not backing out) only brakes: each u_j between 0 and u_prev,j."""
+    assert result.protective_stop and not result.backing_out
+    assert (result.u >= np.minimum(u_prev, 0.0) - 1e-9).all() and (result.u <= np.maximum(u_prev, 0.0) + 1e-9).all()
 
 
 def test_a_person_at_the_legs_stops_the_robot_without_a_retreat_on_random_states() -> None:
@@ -323,21 +340,22 @@ def test_a_protective_stop_brakes_with_the_motors_full_torque_on_random_states()
     acceleration bound, the motors' full torque (``safety.accel_max`` is about half of it): from a
     robot moving at up to a quarter of its velocity bounds the command changes by at most 2·a·Δt per
     joint and by more than a·Δt on some joint (the bound alone would take twice as long to stop, the
-    arm moving on into where the person, seen a camera latency ago, already is). Where the rows are
-    infeasible the relaxed solve tries the bound ×1 first, as any step."""
+    arm moving on into where the person, seen a camera latency ago, already is), and only brakes
+    (each joint between rest and its velocity before). Where the rows are infeasible the relaxed
+    solve tries the bound ×1 first, as any step."""
     p = pipeline_for(on_intrusion="retreat")
     rng = np.random.default_rng(41)
     a, harder = p.filter.params.accel_max, 0
-    for _ in range(25):
+    for _ in range(40):
         q = random_safe_state(p, rng)
         person_in_the_legs(p, rng, q, inside=False, walking=2.0)
         p.filter.reset(q)
         u_prev = 0.25 * rng.uniform(-p.filter.params.u_max, p.filter.params.u_max)
         p.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
         result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT, np.zeros(8))
-        assert result.protective_stop
-        if result.mode is SafetyMode.RELAXED:  # the rows infeasible together: the relaxed solve's boxes
-            continue
+        assert_only_brakes(result, u_prev)
+        if result.mode is SafetyMode.RELAXED or ACCEL_BOUND in result.gave_way:  # the relaxed solve's boxes, or a
+            continue  # joint's reach wholly beyond its velocity box (braking for a joint limit)
         change = np.abs(result.u - u_prev)
         assert (change <= MOTOR_WIDENING * a * DT + 1e-9).all()
         assert (change > 1.01 * a * DT).any()
@@ -405,13 +423,13 @@ def test_a_person_standing_inside_a_margin_is_backed_out_of_on_random_states() -
             pipeline.filter.reset(q)
             pipeline.filter._u_prev = u_prev.copy()  # noqa: SLF001 (moving)
         for step in range(round(3.0 / DT)):
-            rows = stop_rows(p)
+            rows, backing_rows = stop_rows(p), stop_rows(p, full_torque=False)
             result = p.filter.step(q_nom, DT, np.zeros_like(q_nom))
             if not result.protective_stop:
                 ended += 1
                 assert not p.barrier.last_rows.person_inside(-1e-3).any()
                 break
-            assert_a_stop_that_never_closes_in(result, *rows)
+            assert_a_stop_that_never_closes_in(result, *(backing_rows if result.backing_out else rows))
         assert (p.barrier.last_rows.h[inside] > h0[inside] + 1e-3).any(), "nothing was backed out of"
         for _ in range(round(1.0 / DT)):
             result = off.filter.step(q_nom, DT, np.zeros_like(q_nom))
@@ -632,7 +650,7 @@ def test_a_person_rushing_in_faster_than_any_retreat_stops_the_robot_on_random_s
         first = stop.filter.step(q_nom, DT, np.zeros_like(q_nom))
         assert first.mode is SafetyMode.RELAXED and first.relaxed.any(), "the rushing person's rows must give way"
         assert any("human.torso" in name for name in first.gave_way)
-        assert_stops_without_retreat(stop, q, q_nom, u_prev)
+        assert_stops_without_retreat(stop, q, q_nom, u_prev, give_way=True)
         stopped += 1
     assert stopped >= 15 and retreated >= stopped // 2
 
@@ -831,7 +849,8 @@ def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> 
     """The random intrusions above, but with the robot already moving at random speeds (u_prev):
     the acceleration bound cannot always reach a retreat; the self rows and joint barriers still
     hold; within the bound no person row closes faster than braking as hard as the bound allows
-    (A_i u ≥ min(b_i, 0, A_i ū), ū the bounded box's point nearest rest); when the bound gave way
+    (A_i u ≥ min(b_i, 0, A_i ū), ū the bounded box's point nearest rest; a protective stop's, the
+    bound ×2's, the motors' full torque); when the bound gave way
     it is named, and beyond twice the bound (the motors' full torque) only where no u within that
     keeps the hard rows (SciPy's LP), never for a person's floor alone."""
     p = pipeline_for(on_intrusion="retreat")
@@ -846,8 +865,11 @@ def test_random_intrusions_with_a_moving_robot_keep_the_hard_rows(seed: int) -> 
         boxes = p.filter._boxes(q, DT)  # noqa: SLF001
         bounded_lower, bounded_upper, _ = next(boxes)
         twice_lower, twice_upper, _ = next(boxes)  # the bound ×2
-        brake = np.clip(0.0, bounded_lower, bounded_upper)
         result = p.filter.step(rng.uniform(p.kinematics.q_min, p.kinematics.q_max), DT)
+        if result.protective_stop:  # (a person reaching a thigh) it brakes at the motors' full torque
+            brake = np.clip(0.0, twice_lower, twice_upper)
+        else:
+            brake = np.clip(0.0, bounded_lower, bounded_upper)
         lhs = A @ result.u
         assert result.mode is not SafetyMode.HOLD and np.isfinite(result.u).all()
         assert (lhs[~soft] >= b[~soft] - 1e-6).all()

@@ -37,9 +37,9 @@ robot's arm while it slid along its own body widened the bound until the floor h
 jump of 14 rad/s in one step (traced with a noisy camera on a broad person punching) that the
 servos trailed by 0.19 rad, 11 mm deeper into the robot's own margin at its joints than at the
 command. A protective stop decided from the rows brakes within the bound ×2 (the motors' full
-torque; :mod:`services.safety.protective_stop`) when its rows allow; its relaxed solve, where they
-do not, tries the boxes above from ×1 as any step (braking every relaxed step at full torque left
-the servos trailing: measured in docs/safety-measurements.md). ``ddq`` = (u* − u_prev)/Δt is the command's
+torque), its relaxed solve too (its boxes from ×2 on), and only brakes: each joint's velocity
+stays between rest and u_prev (:mod:`services.safety.protective_stop`; a relaxed step that is no
+stop, or a stop backing out of a still person, tries the boxes from ×1). ``ddq`` = (u* − u_prev)/Δt is the command's
 acceleration (the executor's inertial feed-forward). After :meth:`SafetyFilter.reset` there is no
 u_prev and no bound for one step.
 
@@ -142,7 +142,8 @@ from services.safety.barriers.pairs import BarrierRows, CollisionGeometry
 from services.safety.qp import QPBackend, QPProblem, QPStatus, make_backend
 from services.safety.qp.base import INF_BOUND
 from services.safety.qp.box import (
-    HIGH, LOW, LOWER, U_MAX, U_MIN, UPPER, bounded_box, integrate, limits_table, prepare_qp, reach_box, velocity_box,
+    HIGH, LOW, LOWER, U_MAX, U_MIN, UPPER, bounded_box, braking_box, integrate, limits_table, prepare_qp, reach_box,
+    velocity_box,
 )
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
 from services.safety.protective_stop import VIOLATION_TOL, ProtectiveStop, pushed_joints
@@ -472,9 +473,12 @@ class SafetyFilter:
             # near a person, no tracking speed the joint could not stop from in time (module docstring)
             capped = cap_reference(rows.A, rows.h, rows.soft, rows.enabled, accel, p.human_speed_mps, p.weights,
                                    u_ref, stacked[0], self._caps)
+        braking = u_prev if stop and bounded and not backing_out else None  # a stop only brakes (module docstring)
         if stop and bounded:  # a protective stop brakes with the motors' full torque (module docstring)
             lower, upper, honours = reach_box(u_prev, accel, MOTOR_WIDENING, dt, self._limits[LOWER],
                                               self._limits[UPPER])
+            if braking is not None:
+                lower, upper = braking_box(lower, upper, braking)
             stacked[1][:n], stacked[2][:n] = lower, upper
         problem = QPProblem(p.weights, u_ref, A, b, lower, upper, stacked)
         solution = self._qp.solve(problem)
@@ -490,7 +494,7 @@ class SafetyFilter:
                 mode = SafetyMode.RELAXED
         else:
             u, mode, active, relaxed, gave_way, seconds, lower, upper, honours, gave_stop = self._relaxed_step(
-                problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0])
+                problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0], braking)
             qp_time += seconds
             gave_rest = bool((relaxed & soft_all[: relaxed.shape[0]]).any())  # stage 2 aimed at rest
             if gave_stop:  # the protective stop when person rows give way (module docstring): it tracked rest
@@ -519,9 +523,10 @@ class SafetyFilter:
                           backing_out, capped > 0)
 
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
-                      n_pair: int) -> tuple:
+                      n_pair: int, braking: np.ndarray | None = None) -> tuple:
         """The step when the plain QP has no solution: the relaxed solve (:meth:`_relax`) in every box
-        of :meth:`_boxes` in turn until one works. Returns (u, mode, active rows, the pair rows that
+        of :meth:`_relaxed_boxes` in turn until one works (``braking``: a protective stop's u_prev,
+        as there). Returns (u, mode, active rows, the pair rows that
         gave way (``n_pair``,), the names of every row that gave way, QP seconds, the box used (lower,
         upper), whether it honours the acceleration bound, whether it was the protective stop of
         :meth:`_relax`); u None and mode HOLD when no box works.
@@ -529,7 +534,7 @@ class SafetyFilter:
         A, b = problem.A, problem.b
         margin = self._shift[kept]  # each row's b shift
         seconds = 0.0
-        for lower, upper, honours, keep_hard in self._relaxed_boxes(q, dt):
+        for lower, upper, honours, keep_hard in self._relaxed_boxes(q, dt, braking):
             problem = QPProblem(w=problem.w, u_ref=problem.u_ref, A=A, b=b, lower=lower, upper=upper)
             u, slack, spent, stopped = self._relax(problem, soft, margin, keep_hard)
             seconds += spent
@@ -555,23 +560,35 @@ class SafetyFilter:
         finally:
             self._u_prev = u_prev
 
-    def _relaxed_boxes(self, q: np.ndarray, dt: float) -> Iterator[tuple[np.ndarray, np.ndarray, bool, bool]]:
+    def _relaxed_boxes(self, q: np.ndarray, dt: float,
+                       braking: np.ndarray | None = None) -> Iterator[tuple[np.ndarray, np.ndarray, bool, bool]]:
         """The boxes the relaxed step tries, each (lower, upper, honours the acceleration bound,
         ``keep_hard``: the braking point keeps the hard rows, :meth:`LexicographicSolver.solve`): the
         boxes of :meth:`_boxes` up to the bound ×:data:`MOTOR_WIDENING` braking at their point
         nearest rest (the person's floors as hard as the motors can), then that box again and every
         wider one braking at the nearest point to rest that keeps the hard rows (module docstring).
         Without a bound, :meth:`_boxes` gives the velocity box alone, paired here with the first
-        factor: its point nearest rest, 0, keeps every hard row that holds, so it is the same ū."""
-        for factor, (lower, upper, honours) in zip((*ACCEL_WIDENING, math.inf), self._boxes(q, dt)):
+        factor: its point nearest rest, 0, keeps every hard row that holds, so it is the same ū.
+        ``braking`` (u_prev of a protective stop decided from the rows, in an acceleration bound,
+        unless it backs out): the boxes from the motors' full torque (×:data:`MOTOR_WIDENING`, the
+        stop's own bound, honoured there) on, each narrowed to braking from u_prev
+        (:func:`~services.safety.qp.box.braking_box`: the same points nearest rest)."""
+        widest_honoured = 1.0 if braking is None else MOTOR_WIDENING
+        for factor, (lower, upper, within) in zip((*ACCEL_WIDENING, math.inf), self._boxes(q, dt)):
+            honours = within and factor <= widest_honoured
+            if braking is not None:  # a stop brakes with the motors' full torque, and only brakes
+                if factor < MOTOR_WIDENING:
+                    continue
+                lower, upper = braking_box(lower, upper, braking)
             if factor <= MOTOR_WIDENING:
                 yield lower, upper, honours, False
             if factor >= MOTOR_WIDENING:
                 yield lower, upper, honours, True
 
     def _boxes(self, q: np.ndarray, dt: float) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
-        """The velocity boxes to try in order, each (lower, upper, honours the acceleration bound),
-        computed when asked for (the first suffices unless the QP is infeasible).
+        """The velocity boxes to try in order, each (lower, upper, within: the box is the bound's
+        reach ×f, not clipped wholly beyond the velocity box; the first one's is whether it honours
+        the acceleration bound), computed when asked for (the first suffices unless the QP is infeasible).
 
         Without a bound (none configured, or the first step after a reset): the velocity box
         (:func:`~services.safety.qp.box.velocity_box`) alone. With one (a, rad/s²): the velocity box
@@ -590,7 +607,7 @@ class SafetyFilter:
         for factor in ACCEL_WIDENING:
             if factor != ACCEL_WIDENING[0]:
                 low, high, within = reach_box(u_prev, a, factor, dt, lower, upper)
-            yield low, high, factor == 1.0 and within
+            yield low, high, within
         yield lower, upper, False
 
     def _relax(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray,
@@ -602,7 +619,8 @@ class SafetyFilter:
         braking point keeps the hard rows); when a soft
         (robot–person) row gives way there and ``on_intrusion`` is "stop_on_give_way", the
         protective stop: the same solve again with every soft row at its floor, b_i ← min(b_i, 0)
-        (never closer, no retreat demanded), aiming at ū, the box's point nearest rest. The slacks
+        (never closer, no retreat demanded), aiming at ū, the box's point nearest rest, in the box
+        narrowed to braking from u_prev (:func:`~services.safety.qp.box.braking_box`, which keeps ū). The slacks
         are the first solve's: the person rows that could not be honoured as asked (reported as
         given way). Only soft rows' b is lowered, so the feasibility argument holds unchanged; if
         the stop's solve fails numerically the first solve's u is used.
@@ -613,6 +631,10 @@ class SafetyFilter:
             return first.u, first.slack, first.seconds, False
         floored = problem.b.copy()
         np.minimum(floored, 0.0, out=floored, where=soft)
-        stop = self._relaxation.solve(dataclasses.replace(problem, b=floored), soft, margin, penalty, rest=True,
-                                      keep_hard=keep_hard)
-        return (first.u if stop.u is None else stop.u), first.slack, first.seconds + stop.seconds, stop.u is not None
+        lower, upper = problem.lower, problem.upper
+        if self._u_prev is not None and self.params.accel_max is not None:  # a stop only brakes
+            lower, upper = braking_box(lower, upper, self._u_prev)
+        stop = self._relaxation.solve(dataclasses.replace(problem, b=floored, lower=lower, upper=upper), soft, margin,
+                                      penalty, rest=True, keep_hard=keep_hard)
+        u = first.u if stop.u is None else np.clip(stop.u, lower, upper)  # (within the solver's tolerance)
+        return u, first.slack, first.seconds + stop.seconds, stop.u is not None

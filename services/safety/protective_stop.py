@@ -50,7 +50,7 @@ intrusion stop"): the distance the robot closed into the true person 2.4–5× s
 1.7–3.5× within φ, at 11–30 % more contact steps, which are the person's.
 
 **A stop brakes with the motors' full torque.** A stop decided from the rows (either of the above)
-brakes, where its rows are feasible together, within twice the acceleration bound
+brakes within twice the acceleration bound
 (:data:`~services.safety.filter.MOTOR_WIDENING`: ``safety.accel_max`` is about half each motor's
 torque, a bound kept while imitating so that the servos stay on the path the barriers were
 computed for), as the relaxed step already may for a person's floor: an arm moving at 3 rad/s stops
@@ -58,13 +58,28 @@ in half the time and half the angle. The stop is there because the person is clo
 allow, and they are where the camera showed them a latency ago: every millisecond of braking is
 the arm moving on into where they may already be (traced on the test variants: a fist punching
 across a forearm still braking from 3 rad/s, a waist braking from 0.9 rad/s over 90 ms). Where the
-rows are infeasible together the relaxed solve tries its boxes from ×1, as any step (braking every
-relaxed step that hard left the servos trailing their command). Only the box widens, within what
-the motors give; the rows and their floors are those of the step, so the feasibility argument
-holds as it is. Measured (docs/safety-measurements.md "A stop brakes with the motors' full torque, on the person as
-measured"): on the test variants, with the measured intrusion above, robot-caused contact steps
-192 (158 commanded) → 155 (111), on the noisy camera 51 (27) → 44 (9), at 1–15 % more contacts
-(the person meeting a robot that stands still sooner).
+rows are infeasible together, so does the relaxed solve: its boxes from ×2 on (a relaxed step
+that is no stop starts at ×1, and so does a stop backing out, below: braking every relaxed step
+that hard left the servos trailing their command). Only the box widens, within what the motors give; the rows and their floors are those of
+the step, so the feasibility argument holds as it is. Measured (docs/safety-measurements.md "A
+stop brakes with the motors' full torque, on the person as measured"): on the test variants, with
+the measured intrusion above, robot-caused contact steps 192 (158 commanded) → 155 (111), on the
+noisy camera 51 (27) → 44 (9), at 1–15 % more contacts (the person meeting a robot that stands
+still sooner).
+
+**A stop only brakes.** In a stop decided from the rows (unless it backs out, below) every box the
+step solves in, the plain QP's and each of the relaxed solve's, is narrowed per joint to the
+velocities between rest and the last command, [min(u_prev, 0), max(u_prev, 0)]
+(:func:`~services.safety.qp.box.braking_box`): a joint may slow down, never speed up or turn back.
+Traced on the side-stepping punches: with the rows infeasible within the braking box, the relaxed
+solve's least-violation stage manoeuvred, the waist rolling faster again (0.57 → 0.69 rad/s) and a
+shoulder turning back, to keep the distances to capsules seen a latency ago, and swung the torso
+into the true forearm at up to 160 mm/s. The narrowed box keeps its point nearest rest (the
+braking point ū, and 0 in the widest box), so every relaxed box's floors and the feasibility
+argument hold as they are; the stop solved when person rows give way (``stop_on_give_way``)
+only brakes the same way. Measured (docs/safety-measurements.md "A stop only brakes", with the
+relaxed solve from ×2 above): the 56 test variants' robot-caused steps 73 (66 commanded) → 53
+(26), with the noisy camera 338 (141) → 278 (62).
 
 **Backing out from a person who stands inside.** The intrusion stop holds the robot while a person
 is inside a margin; a person who *stays* there (standing beside the robot with a hand hanging into

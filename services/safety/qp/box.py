@@ -184,6 +184,19 @@ def reach_box(u_prev: np.ndarray, accel: np.ndarray, factor: float, dt: float, l
     return low, high, within
 
 
+def braking_box(low: np.ndarray, high: np.ndarray, u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) (n,): the box ``[low, high]`` narrowed per joint to the velocities between rest
+    and ``u_prev``, [min(u_prev, 0), max(u_prev, 0)]: a joint may slow down, not speed up or turn
+    back (a protective stop only brakes).
+
+    Never empty and its point nearest rest unchanged, for any box of :func:`reach_box` in a
+    velocity box containing 0 (every box the filter builds): that point p is clip(0, low, high). If
+    0 ∈ [low, high], p = 0. Otherwise, say low > 0: low = max(u_prev − r, lower) with lower ≤ 0, so
+    low = u_prev − r ≤ u_prev, or the reach lies wholly above the velocity box and p = upper ∈ [0,
+    u_prev). Either way 0 < p ≤ u_prev (and symmetrically for high < 0), so p lies in both boxes."""
+    return np.maximum(low, np.minimum(u_prev, 0.0)), np.minimum(high, np.maximum(u_prev, 0.0))
+
+
 def bounded_box(q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, u_min: np.ndarray | None, u_max: np.ndarray,
                 accel: np.ndarray, share: float, u_prev: np.ndarray, factor: float,
                 dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
