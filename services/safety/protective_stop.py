@@ -60,12 +60,12 @@ the arm moving on into where they may already be (traced on the test variants: a
 across a forearm still braking from 3 rad/s, a waist braking from 0.9 rad/s over 90 ms). Where the
 rows are infeasible together, so does the relaxed solve: its boxes from ×2 on (a relaxed step
 that is no stop starts at ×1, and so does a stop backing out, below: braking every relaxed step
-that hard left the servos trailing their command). Only the box widens, within what the motors give; the rows and their floors are those of
-the step, so the feasibility argument holds as it is. Measured (docs/safety-measurements.md "A
-stop brakes with the motors' full torque, on the person as measured"): on the test variants, with
-the measured intrusion above, robot-caused contact steps 192 (158 commanded) → 155 (111), on the
-noisy camera 51 (27) → 44 (9), at 1–15 % more contacts (the person meeting a robot that stands
-still sooner).
+that hard left the servos trailing their command). Only the box widens, within what the motors
+give; the rows and their floors are those of the step, so the feasibility argument holds as it
+is. Measured (docs/safety-measurements.md "A stop brakes with the motors' full torque, on the
+person as measured"): on the test variants, with the measured intrusion above, robot-caused
+contact steps 192 (158 commanded) → 155 (111), on the noisy camera 51 (27) → 44 (9), at 1–15 %
+more contacts (the person meeting a robot that stands still sooner).
 
 **A stop only brakes.** In a stop decided from the rows (unless it backs out, below) every box the
 step solves in, the plain QP's and each of the relaxed solve's, is narrowed per joint to the
