@@ -410,6 +410,12 @@ class G1Config(_Section):
     state_wait_s: float = Field(default=5.0, gt=0, le=120, description="start fails without rt/lowstate within this time (s)")
     kp: PositiveJointVector = Field(default_factory=lambda: [60.0] * N_JOINTS, description="servo stiffness (N·m/rad)")
     kd: NonNegativeJointVector = Field(default_factory=lambda: [1.5] * N_JOINTS, description="servo damping (N·m·s/rad)")
+    stop_damping: float = Field(
+        default=2.0, ge=1, le=5,
+        description="kd of the imitation joints × this while the safety service commands a protective stop "
+        "(JointCommand.protective_stop): the arms brake to rest with less overshoot. At kp 60 / kd 1.5 the shoulders' "
+        "damping ratio is ≈ 0.2 (our model's inertia at home), 0.43 at ×2; check on the robot before raising it",
+    )
     max_speed: PositiveJointVector = Field(
         default_factory=lambda: [3.0, 3.0, 6.0, 6.0, 6.0, 6.0, 6.0, 6.0],
         description="the sent target moves at most this fast (rad/s)",
@@ -458,6 +464,13 @@ class ExecutorConfig(_Section):
     )
     hold_kp: float = Field(default=500.0, gt=0, description="servo stiffness of the joints held at home (N·m/rad)")
     hold_kd: float = Field(default=10.0, ge=0, description="servo damping of the joints held at home (N·m·s/rad)")
+    stop_damping: float = Field(
+        default=2.0, ge=1, le=5,
+        description="kd of the imitation joints × this while the safety service commands a protective stop "
+        "(JointCommand.protective_stop; 1: off). A stop brakes to rest, where the servo's overshoot carries the arm "
+        "on into whatever stopped it: ×2 brings the shoulders (kp 150, kd 5: damping ratio 0.45–0.48 at home) to "
+        "about critical (0.90–0.95), the fastest approach to rest without overshoot",
+    )
     gravity_compensation: bool = Field(
         default=True, description="simulation: the servos add the links' gravity torque (within their torque limits)"
     )

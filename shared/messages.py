@@ -195,10 +195,14 @@ class JointCommand(Message):
     command moves to where the robot is), so q may
     differ from the previous command by u_max·Δt more than the one step's rate limit. Schema
     version 3 added it.
+
+    ``protective_stop``: the command brakes to rest (the safety filter's protective stop,
+    :mod:`services.safety.protective_stop`); the executor damps its servos harder while it lasts
+    (``executor.stop_damping``, ``executor.g1.stop_damping``). Schema version 4 added it.
     """
 
     SCHEMA_NAME: ClassVar[str] = "JointCommand"
-    SCHEMA_VERSION: ClassVar[int] = 3
+    SCHEMA_VERSION: ClassVar[int] = 4
     q: Array(N_JOINTS)
     dq: Array(N_JOINTS)
     ddq: Array(N_JOINTS) = Field(
@@ -208,6 +212,7 @@ class JointCommand(Message):
     human_stamp: float | None = Field(default=None, description="stamp of the HumanState used")
     human_seq: int | None = Field(default=None, ge=0)
     settled: bool = Field(default=False, description="q first brought to the measured joints this tick")
+    protective_stop: bool = Field(default=False, description="the command brakes to rest (a protective stop)")
 
 
 class SafetyStatus(Message):

@@ -28,6 +28,7 @@ SPEC = load_robot_spec(default_robot_spec_path())
 Q_HOME = np.array([SPEC.home.get(j, 0.0) for j in SPEC.imitation_joints])
 STEP = np.array([0.2, 0.2, -0.4, 0.3, -0.4, -0.4, -0.3, -0.4])  # arms out and forward: collision-free
 TORSO = CAPSULE_NAMES.index("torso")
+STOPS = 5  # protective-stop commands sent
 
 
 class Commander:
@@ -111,6 +112,11 @@ def test_executor_follows_holds_and_counts_over_zenoh(spawn, which: str) -> None
         wrong_frame = human_in_pelvis()
         wrong_frame.frame_id = "camera"  # type: ignore[assignment]  (encode does not re-validate)
         bus.put_raw("human/state", encode(wrong_frame))
+        # A protective stop's commands are applied (with the servos damped harder) and counted.
+        commands = bus.publisher("robot/command")
+        for _ in range(STOPS):
+            commands.put(JointCommand(stamp=time.monotonic(), q=target, dq=np.zeros(8), protective_stop=True))
+            time.sleep(0.02)
         # The person's torso capsule inside the welded pelvis: counted as a robot–human contact.
         humans = bus.publisher("human/state")
         for _ in range(5):
@@ -126,6 +132,7 @@ def test_executor_follows_holds_and_counts_over_zenoh(spawn, which: str) -> None
     assert "needs a display" in output, "--viewer without a display must say why it runs headless"
     assert counters["tick_errors"] == 0
     assert counters["commands_applied"] >= 20  # 200 Hz until the step was reached
+    assert 1 <= counters["stop_commands"] <= STOPS, counters["stop_commands"]  # the Commander's are no stops
     assert counters["command_timeouts"] >= 1
     assert counters["stale_ticks"] >= 0.4 * counters["rate_hz"]  # ≥ 0.4 s of the 0.5 s held after the timeout
     assert counters["dropped"].get("robot/command", 0) >= 2

@@ -125,6 +125,31 @@ def test_ramp_in_starts_at_the_measured_pose_and_reaches_full_weight() -> None:
     np.testing.assert_allclose(targets(frames, np.array(held)), np.tile(POSE[held], (len(frames), 1)), atol=1e-6)
 
 
+@pytest.mark.parametrize("upper_body", [False, True])
+def test_a_protective_stop_damps_the_imitated_joints_by_stop_damping_until_a_command_that_is_not(upper_body: bool) -> None:
+    """kd of the imitated slots × ``stop_damping`` while the newest command is a protective stop; the
+    other commanded slots (held at the ramp-in pose) keep their gains; the next command restores kd.
+    The frames pass the last check before sending (a latched fault would ramp out)."""
+    robot = Robot(conf(stop_damping=2.5, arm_sdk_joints="upper_body" if upper_body else "imitation"))
+    goal = robot.ctl.q_home
+    robot.run(0.6, goal)
+    plain = robot.run(0.01, goal)[-1]["motor_cmd"]
+    np.testing.assert_allclose(plain["kd"][SLOTS], 1.5)
+    robot.t += PERIOD
+    robot.ctl.command(robot.t, goal, np.zeros(8), stop=True)
+    stopping = robot.run(0.01)[-1]["motor_cmd"]
+    np.testing.assert_allclose(stopping["kd"][SLOTS], 2.5 * 1.5)
+    others = np.flatnonzero(plain["mode"][:29] == 1)
+    others = others[~np.isin(others, SLOTS)]
+    assert len(others) == (9 if upper_body else 0)
+    np.testing.assert_array_equal(stopping["kd"][others], plain["kd"][others])
+    np.testing.assert_array_equal(stopping["kp"][:29], plain["kp"][:29])
+    assert robot.ctl.counters["stop_commands"] == 1
+    again = robot.run(0.01, goal)[-1]["motor_cmd"]
+    np.testing.assert_allclose(again["kd"][SLOTS], 1.5)
+    assert robot.ctl.phase is Phase.ACTIVE and not robot.ctl.faulted
+
+
 def test_targets_stay_in_range_and_within_torque_reach() -> None:
     robot = Robot(follow=False)  # the arm is blocked: it never moves
     robot.run(0.01)

@@ -349,8 +349,10 @@ def test_defaults_of_optional_fields_are_none() -> None:
     assert decoded.seq == 0 and decoded.source == "" and decoded.frame_id == "robot"
     command = decode(encode(JointCommand(stamp=1.0, q=np.zeros(8), dq=np.zeros(8))))
     assert command.mode is SafetyMode.NOMINAL and command.human_stamp is None and command.human_seq is None
-    assert command.settled is False
+    assert command.settled is False and command.protective_stop is False
     assert decode(encode(JointCommand(stamp=1.0, q=np.zeros(8), dq=np.zeros(8), settled=True))).settled is True
+    stop = decode(encode(JointCommand(stamp=1.0, q=np.zeros(8), dq=np.zeros(8), protective_stop=True)))
+    assert stop.protective_stop is True and stop.settled is False
 
 
 @pytest.mark.parametrize("mode", list(SafetyMode))

@@ -295,12 +295,13 @@ def test_follows_the_person_and_keeps_clear_of_an_intruding_forearm(live: Live) 
 @pytest.mark.integration
 def test_a_person_inside_the_forearm_is_reported_as_intrusion_and_relaxed_pairs_over_zenoh(live: Live) -> None:
     """A person's forearm pushed through the robot's forward-pointing arm at 2 m/s: the rows become
-    infeasible, SafetyStatus names the robot–person pairs that gave way and flags the intrusion."""
+    infeasible, SafetyStatus names the robot–person pairs that gave way and flags the intrusion, and
+    the commands of the protective stop say so to the executor (``JointCommand.protective_stop``)."""
     _, far = person(2.0)
     state = {"capsules": far, "velocities": np.zeros((7, 2, 3))}
     humans = HumanPublisher(live.bus, lambda: human_state(arm_forward(), state["capsules"], state["velocities"]))
     try:
-        live.rec.wait("robot/command", lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout_s=5)
+        following = live.rec.wait("robot/command", lambda c: c.q[2] < -1.2 and c.human_seq is not None, timeout_s=5)
         time.sleep(0.5)
         start = time.monotonic()
         for x in np.arange(0.9, -0.05, -2.0 / 60):  # across the arm and into the chest at 2 m/s
@@ -312,9 +313,12 @@ def test_a_person_inside_the_forearm_is_reported_as_intrusion_and_relaxed_pairs_
             time.sleep(1 / 60)
         time.sleep(0.5)
         during = live.rec.between("safety/status", start)
+        commands = live.rec.between("robot/command", start)
     finally:
         humans.stop()
     live.rec.wait("safety/status", lambda s: s.human_stale, timeout_s=3)  # leave the service as the next test expects
+    assert not following.protective_stop
+    assert any(c.protective_stop for c in commands), "no command of the stop said so"
     intrusions = [s for s in during if s.person_intrusion]
     relaxed = [s for s in during if s.relaxed_pairs]
     assert intrusions, sorted({s.mode.value for s in during})

@@ -237,7 +237,7 @@ def run_episode(
             result = safety.filter.step(safety.filter.q_cbf.copy(), dt, q_robot=q_robot)
         else:
             result = safety.filter.step(q_nom, dt, dq_nom if feedforward else None, q_robot)
-        executor.apply_command(result.q_cbf, result.u, result.ddq)
+        executor.apply_command(result.q_cbf, result.u, result.ddq, result.protective_stop)
         executor.tick()
 
         touching = sim.surface_contacts(TRUE_PERSON)

@@ -54,10 +54,13 @@ class Executor(ABC):
         """Release it (idempotent); the robot is left holding its last target."""
 
     @abstractmethod
-    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None) -> np.ndarray:
+    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None,
+                      stop: bool = False) -> np.ndarray:
         """Hold target angles ``q`` (rad) with velocity feed-forward ``dq`` (rad/s) from now on;
         ``ddq`` (rad/s²) the command's acceleration, for an executor that can feed it forward
-        through the robot's inertia (None: zero).
+        through the robot's inertia (None: zero). ``stop``: the command is a protective stop
+        (:attr:`~shared.messages.JointCommand.protective_stop`), braking to rest: the servos damp
+        with their ``stop_damping`` until a command that is not.
 
         Targets outside the joint ranges are clipped; returns the target applied.
         """

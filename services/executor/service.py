@@ -11,9 +11,10 @@ Every tick:
 
 1. the newest command, if younger than ``executor.command_timeout_s`` (local receive time:
    stamps of other hosts' monotonic clocks are not comparable), becomes the servo target with its
-   velocity as feed-forward. An older one makes the robot hold the last commanded position with
-   zero velocity: counted per tick (``stale_ticks``) and per episode (``command_timeouts``).
-   Before the first command the robot holds home;
+   velocity as feed-forward; a protective stop's (``JointCommand.protective_stop``, counted in
+   ``stop_commands``) with the servos damped by ``executor.stop_damping``. An older one makes the
+   robot hold the last commanded position with zero velocity: counted per tick (``stale_ticks``) and
+   per episode (``command_timeouts``). Before the first command the robot holds home;
 2. a new human state (robot frame only; others are dropped and counted) moves the person's
    capsules in the simulation; the last one stays while none arrives;
 3. one control period of physics, then the contacts of that step are tallied (robot–robot and
@@ -100,6 +101,7 @@ class ExecutorService(ScheduledService):
         self.schedule = FixedRateSchedule(1.0 / conf.executor.rate_hz)
         self.tick_errors = StepErrors(log, "executor tick", _MAX_CONSECUTIVE_ERRORS)
         self.commands_applied = 0
+        self.stop_commands = 0
         self.clipped_commands = 0
         self.stale_ticks = 0
         self.command_timeouts = 0
@@ -168,9 +170,10 @@ class ExecutorService(ScheduledService):
         if now - received.received <= self.conf.executor.command_timeout_s:
             if received is not self._applied:
                 message = received.message
-                self._target = self.executor.apply_command(message.q, message.dq, message.ddq)
+                self._target = self.executor.apply_command(message.q, message.dq, message.ddq, message.protective_stop)
                 self.clipped_commands += int(not np.array_equal(self._target, message.q))
                 self.commands_applied += 1
+                self.stop_commands += int(message.protective_stop)
                 self._applied = received
                 if self._stale:
                     log.info("commands resumed after %d stale ticks so far", self.stale_ticks)
@@ -212,7 +215,7 @@ class ExecutorService(ScheduledService):
         hz = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
         return (
             f"{self.ticks} ticks ({hz:.1f} Hz), {self.deadline_misses} misses, {self.commands_applied} commands "
-            f"({self.clipped_commands} clipped), {self.stale_ticks} stale ticks in {self.command_timeouts} timeouts, "
+            f"({self.clipped_commands} clipped, {self.stop_commands} stops), {self.stale_ticks} stale ticks in {self.command_timeouts} timeouts, "
             f"{self.human_updates} human updates, dropped {self.dropped()}, {self.tally.line()}"
         )
 
@@ -230,6 +233,7 @@ class ExecutorService(ScheduledService):
             "commands_received": self.command.count,
             "commands_applied": self.commands_applied,
             "clipped_commands": self.clipped_commands,
+            "stop_commands": self.stop_commands,
             "stale_ticks": self.stale_ticks,
             "command_timeouts": self.command_timeouts,
             "human_updates": self.human_updates,

@@ -263,12 +263,13 @@ class SafetyService(ScheduledService):
             q_nom = pipeline.filter.q_cbf.copy()
         result = pipeline.filter.step(q_nom, self.period, dq_nom, self._robot_at(now))
 
-        q, u, ddq, mode, settled = result.q_cbf, result.u, result.ddq, result.mode, result.settled
+        q, u, ddq, mode = result.q_cbf, result.u, result.ddq, result.mode
+        settled, stop = result.settled, result.protective_stop
         if not (np.isfinite(q).all() and np.isfinite(u).all() and np.isfinite(ddq).all()):  # the filter promises this never happens
             self.nonfinite_holds += 1
             self.refusals.refuse("robot/command")
             q, u, ddq, mode = self._last_q.copy(), np.zeros_like(self._last_q), np.zeros_like(self._last_q), SafetyMode.HOLD
-            settled = False
+            settled, stop = False, True  # held at rest: a stop
             pipeline.filter.reset(q)
         message = human.message if human is not None else None
         self._command_pub.put(
@@ -276,6 +277,7 @@ class SafetyService(ScheduledService):
                 stamp=now, q=q, dq=u, ddq=ddq, mode=mode,
                 human_stamp=message.stamp if message is not None else None,
                 human_seq=message.seq if message is not None else None, settled=settled,
+                protective_stop=stop,
             )
         )
         self._last_q = q.copy()

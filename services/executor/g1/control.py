@@ -175,11 +175,12 @@ class G1Controller:
         self._ff = np.zeros(NUM_BODY_MOTORS)  # slot velocity feed-forward (rad/s)
         self._desired = self.q_home.copy()  # newest commanded target, per imitation joint
         self._desired_dq = np.zeros(len(self.slots))
+        self._damping = 1.0  # the imitated joints' kd scale of the newest command (stop_damping in a stop)
         self._command_time = -math.inf
         self._over_torque = np.zeros(NUM_BODY_MOTORS, int)
         self._last_frame = None
         self.counters: dict[str, Any] = {
-            "ramp_ins": 0, "ramp_outs": {}, "faults": [], "commands": 0, "clipped_commands": 0,
+            "ramp_ins": 0, "ramp_outs": {}, "faults": [], "commands": 0, "stop_commands": 0, "clipped_commands": 0,
             "waist_commands_dropped": 0, "max_waist_drop_rad": 0.0, "invalid_states": 0,
             "rate_limited_ticks": 0, "torque_clamped_ticks": 0, "frames_rejected": 0,
         }
@@ -252,8 +253,11 @@ class G1Controller:
                 self.fault(state.received, f"estimated torque above the motor limit at slots {slots}")
         return True
 
-    def command(self, now: float, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        """New imitation target ``q`` (rad) with feed-forward ``dq`` (rad/s) at time ``now``.
+    def command(self, now: float, q: np.ndarray, dq: np.ndarray, stop: bool = False) -> np.ndarray:
+        """New imitation target ``q`` (rad) with feed-forward ``dq`` (rad/s) at time ``now``;
+        ``stop``: it is a protective stop, and until a command that is not, the imitated joints'
+        kd is ``stop_damping`` times ``kd`` (the motor's τ = kp (q − q_m) + kd (dq − dq_m): the extra
+        damping resists only a departure from the commanded velocity).
 
         Returns the target applied: ``q`` clipped into the joint ranges; joints this unit cannot
         move (locked waist) hold their home angle, and targets away from it are counted as dropped.
@@ -271,7 +275,9 @@ class G1Controller:
         self._desired = applied
         self._desired_dq = np.clip(np.asarray(dq, float), -self.max_speed, self.max_speed)
         self._command_time = now
+        self._damping = self.conf.stop_damping if stop else 1.0
         self.counters["commands"] += 1
+        self.counters["stop_commands"] += int(stop)
         return applied.copy()
 
     def begin_stop(self, now: float) -> None:
@@ -408,7 +414,9 @@ class G1Controller:
         else:
             motors["dq"][c] = self.weight * self._ff[c]
             motors["kp"][c] = self.weight * self._slot_kp[c]
-        motors["kd"][c] = self._slot_kd[c]
+        kd = self._slot_kd.copy()
+        kd[self.slots[self.imitated]] *= self._damping
+        motors["kd"][c] = kd[c]
         return seal(frame)
 
     # reporting -----------------------------------------------------------------------------------

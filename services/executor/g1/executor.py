@@ -127,10 +127,11 @@ class G1Executor(Executor):
         self._reader = self._writer = self._link = None  # CycloneDDS deletes the entities with them
 
     # the tick ------------------------------------------------------------------------------------
-    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None) -> np.ndarray:
+    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None,
+                      stop: bool = False) -> np.ndarray:
         """``ddq`` is not fed forward: the adapter has no inertia model of the real G1 (its PD gains
         and the velocity feed-forward follow the acceleration-bounded command)."""
-        return self.controller.command(time.monotonic(), q, dq)
+        return self.controller.command(time.monotonic(), q, dq, stop)
 
     def tick(self) -> None:
         now = time.monotonic()

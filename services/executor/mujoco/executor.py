@@ -106,10 +106,11 @@ class MujocoExecutor(Executor):
             self._viewer.close()
             self._viewer = None
 
-    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None) -> np.ndarray:
+    def apply_command(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray | None = None,
+                      stop: bool = False) -> np.ndarray:
         """The servos follow the command's trajectory over the coming period: ``q`` is where the
         joints should be at its end (:meth:`SimRobot.set_command` ``lead_s``)."""
-        return self.sim.set_command(q, dq, ddq, lead_s=self.substeps * self.sim.timestep)
+        return self.sim.set_command(q, dq, ddq, lead_s=self.substeps * self.sim.timestep, stop=stop)
 
     def tick(self) -> None:
         self.sim.step(self.substeps)

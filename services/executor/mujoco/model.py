@@ -79,7 +79,8 @@ class SimModelError(ExecutorStartError, ValueError):
 @dataclass(frozen=True)
 class PDGains:
     """Joint servo gains (kp in N·m/rad, kd in N·m·s/rad): ``kp``/``kd`` for the imitation joints,
-    ``hold_kp``/``hold_kd`` for the joints held at home, ``per_joint`` overriding either by name."""
+    ``hold_kp``/``hold_kd`` for the joints held at home, ``per_joint`` overriding either by name;
+    ``stop_damping`` (≥ 1) multiplies the imitation joints' kd while a command is a protective stop."""
 
     kp: float
     kd: float
@@ -88,11 +89,12 @@ class PDGains:
     per_joint: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     gravity_compensation: bool = True
     torque_feedforward: bool = True
+    stop_damping: float = 1.0
 
     @classmethod
     def from_config(cls, conf: ExecutorConfig) -> PDGains:
         return cls(conf.kp, conf.kd, conf.hold_kp, conf.hold_kd, dict(conf.joint_gains), conf.gravity_compensation,
-                   conf.torque_feedforward)
+                   conf.torque_feedforward, conf.stop_damping)
 
     def of(self, joint: str, imitation: bool) -> tuple[float, float]:
         """(kp, kd) of ``joint``; ``imitation``: whether it is one of the 8 imitation joints."""

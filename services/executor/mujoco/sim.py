@@ -84,8 +84,9 @@ class SimRobot:
         self._ctrl_home = self._qpos_home[m.jnt_qposadr[m.actuator_trnid[:, 0]]].copy()
         # feed-forward folded into the servo's ctrl: kp (q_ref + kd/kp q̇_ref + τ_ff/kp − q) − kd q̇
         kp_kd = np.array([self.gains.of(j, True) for j in self.joint_names])
-        self._ff = kp_kd[:, 1] / kp_kd[:, 0]
+        self._kd = kp_kd[:, 1]
         self._inv_kp = 1.0 / kp_kd[:, 0]
+        self._damping = math.nan  # the servos' kd scale in force (reset: 1)
         # the servos holding every other joint at home, their dofs and 1/kp (their share of the feed-forward)
         self._held = np.setdiff1d(np.arange(m.nu), self._act)
         self._held_dof = m.jnt_dofadr[m.actuator_trnid[self._held, 0]]
@@ -108,6 +109,7 @@ class SimRobot:
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = self._qpos_home
         self.data.ctrl[:] = self._ctrl_home
+        self._set_damping(1.0)
         self._ctrl_end, self._dq_ref, self._lead_left = self._ctrl_home[self._act].copy(), np.zeros(len(self._act)), 0.0
         self.clear_human()
         mujoco.mj_forward(self.model, self.data)
@@ -134,7 +136,7 @@ class SimRobot:
 
     # ------------------------------------------------------------------------- inputs
     def set_command(self, q: np.ndarray, dq: np.ndarray | None = None, ddq: np.ndarray | None = None,
-                    lead_s: float = 0.0) -> np.ndarray:
+                    lead_s: float = 0.0, stop: bool = False) -> np.ndarray:
         """Servo the imitation joints to ``q`` (rad) with velocity feed-forward ``dq`` (rad/s) and,
         with ``gains.torque_feedforward``, the torque of the commanded acceleration ``ddq`` (rad/s²)
         on every servo, the imitation joints' (I) and those holding the other joints at home (H):
@@ -154,6 +156,10 @@ class SimRobot:
         servos' position reference is that trajectory, q − (time left) · dq, reaching ``q`` after
         ``lead_s`` and staying there. A PD servo aimed at the end of the period from its start runs
         ahead of the command by ≈ kp Δt |dq| of extra torque (0.01 rad at 6 rad/s on a shoulder).
+        ``stop``: the command is a protective stop: until a command that is not, the imitation
+        joints' servos damp with kd × ``gains.stop_damping`` (and feed ``dq`` forward through that
+        kd, so the damping resists only the joints' departure from the commanded velocity:
+        τ = kp (q_ref − q) + kd s (q̇_ref − q̇)).
         ``q`` is clipped to the joint ranges; returns the target actually applied (the clipped q).
         Raises ValueError for a wrong shape, a non-finite value or a negative ``lead_s``.
         """
@@ -166,6 +172,7 @@ class SimRobot:
             raise ValueError("q, dq and ddq must be finite")
         if not (lead_s >= 0.0 and math.isfinite(lead_s)):
             raise ValueError(f"lead_s must be finite and >= 0, got {lead_s}")
+        self._set_damping(self.gains.stop_damping if stop else 1.0)
         target = np.clip(q, self.q_min, self.q_max)
         ctrl = target + self._ff * dq
         if self.gains.torque_feedforward:
@@ -175,6 +182,15 @@ class SimRobot:
         self._ctrl_end, self._dq_ref, self._lead_left = ctrl, dq.copy(), lead_s
         self.data.ctrl[self._act] = ctrl - lead_s * dq
         return target
+
+    def _set_damping(self, scale: float) -> None:
+        """The imitation joints' servos damp with kd × ``scale`` (MuJoCo's position servo: bias
+        −kd q̇ in ``actuator_biasprm[:, 2]``), their velocity feed-forward kd s/kp q̇_ref with it."""
+        if scale == self._damping:
+            return
+        self.model.actuator_biasprm[self._act, 2] = -scale * self._kd
+        self._ff = scale * self._kd * self._inv_kp
+        self._damping = scale
 
     def feedforward_torque(self, ddq: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """τ_ff (N·m) of :meth:`set_command` for the acceleration ``ddq`` (rad/s²) and velocity ``dq``
