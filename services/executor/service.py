@@ -13,8 +13,9 @@ Every tick:
    stamps of other hosts' monotonic clocks are not comparable), becomes the servo target with its
    velocity as feed-forward; a protective stop's (``JointCommand.protective_stop``, counted in
    ``stop_commands``) with the servos damped by ``executor.stop_damping``. An older one makes the
-   robot hold the last commanded position with zero velocity: counted per tick (``stale_ticks``) and
-   per episode (``command_timeouts``). Before the first command the robot holds home;
+   robot hold the last commanded position with zero velocity, damped as in a stop: counted per tick
+   (``stale_ticks``) and per episode (``command_timeouts``). Before the first command the robot holds
+   home;
 2. a new human state (robot frame only; others are dropped and counted) moves the person's
    capsules in the simulation; the last one stays while none arrives;
 3. one control period of physics, then the contacts of that step are tallied (robot–robot and
@@ -182,7 +183,7 @@ class ExecutorService(ScheduledService):
         if not self._stale:
             self.command_timeouts += 1
             self._stale = True
-            self.executor.apply_command(self._target, self._zero)
+            self.executor.apply_command(self._target, self._zero, stop=True)  # held at rest: a stop, damped as one
             log.warning("newest command is %.3f s old (timeout %.3f s): holding the last commanded position",
                         now - received.received, self.conf.executor.command_timeout_s)
         self.stale_ticks += 1
@@ -215,7 +216,8 @@ class ExecutorService(ScheduledService):
         hz = self.ticks / elapsed_s if elapsed_s > 0 else 0.0
         return (
             f"{self.ticks} ticks ({hz:.1f} Hz), {self.deadline_misses} misses, {self.commands_applied} commands "
-            f"({self.clipped_commands} clipped, {self.stop_commands} stops), {self.stale_ticks} stale ticks in {self.command_timeouts} timeouts, "
+            f"({self.clipped_commands} clipped, {self.stop_commands} stops), {self.stale_ticks} stale ticks in "
+            f"{self.command_timeouts} timeouts, "
             f"{self.human_updates} human updates, dropped {self.dropped()}, {self.tally.line()}"
         )
 
