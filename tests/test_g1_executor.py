@@ -138,8 +138,12 @@ def test_arm_sdk_ramps_follows_and_ramps_out_on_lost_state_and_commands(spawn, t
     assert (r["mode"][:, :29] == imitation_only).all(), "the 8 imitation joints only"
     assert (r["kp"][:, :29][:, ~imitation_only] == 0).all() and (r["mode"][:, 29:] == 0).all()
     np.testing.assert_allclose(r["kp"][:, SLOTS], 60.0)
-    np.testing.assert_allclose(r["kd"][:, SLOTS], 1.5)
     t, w = r["t"], r["q"][:, WEIGHT_SLOT].astype(float)
+    # kd as configured while commands come; once they went stale the service holds the robot at rest,
+    # damped as in a protective stop (executor.g1.stop_damping, 2)
+    kd = r["kd"][:, SLOTS].astype(float)
+    np.testing.assert_allclose(kd[t <= last_command], 1.5)
+    assert set(np.unique(kd[t > last_command])) == {1.5, 3.0} and (kd[-10:] == 3.0).all()
 
     # rate: every frame reached the robot at the service's 500 Hz, far above 250 Hz
     active = (t > t[0] + 0.5) & (t < t[-1] - 0.5)
