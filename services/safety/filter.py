@@ -79,7 +79,10 @@ robot than the hair at q_cbf:
    "stop_on_give_way"`` (opt-in) it does not retreat either: both stages are solved again with
    every robot–person row at its floor, b_i ← min(b_i, 0), aiming at ū, so the robot brakes to
    rest within the acceleration bound and closes on no perceived capsule (the slacks reported are
-   the first solve's, the person rows that could not be honoured). A retreat the rows cannot fully
+   the first solve's, the person rows that could not be honoured). With the default ``"stop"``
+   the same holds on a step right after a protective stop: a stop goes on while person rows give
+   way (:mod:`services.safety.protective_stop`, "Protective stop while a person is inside a
+   margin"). A retreat the rows cannot fully
    give is a fast motion along normals of capsules seen a camera latency ago that moves the
    robot's other surfaces with it; a robot that never retreats is instead walked and swung into,
    and with a noisy camera its servos creep into the person, so it is not the default (measured:
@@ -154,6 +157,8 @@ from shared.messages import SafetyMode
 
 #: the ``FilterParams.on_intrusion`` value that also stops when person rows give way (module docstring)
 _STOP_ON_GIVE_WAY = IntrusionResponse.STOP_ON_GIVE_WAY.value
+#: the default: a stop also goes on while person rows give way (module docstring)
+_STOP = IntrusionResponse.STOP.value
 #: a row whose largest |A_ij| is below this does not depend on u (a static link's pair)
 _STATIC_ROW = 1e-12
 #: the acceleration bound's factors, tried in order when no u within it satisfies the rows
@@ -494,7 +499,8 @@ class SafetyFilter:
                 mode = SafetyMode.RELAXED
         else:
             u, mode, active, relaxed, gave_way, seconds, lower, upper, honours, gave_stop = self._relaxed_step(
-                problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0], braking)
+                problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0], braking,
+                stop)
             qp_time += seconds
             gave_rest = bool((relaxed & soft_all[: relaxed.shape[0]]).any())  # stage 2 aimed at rest
             if gave_stop:  # the protective stop when person rows give way (module docstring): it tracked rest
@@ -513,7 +519,7 @@ class SafetyFilter:
             ddq = np.zeros(n) if u_prev is None else (u - u_prev) / dt
         self.q_cbf = q_next
         self._u_prev = u
-        self.stops.stepped(stop or gave_rest)  # the steps aiming at rest (services.safety.protective_stop)
+        self.stops.stepped(stop or gave_rest, stop)  # the steps aiming at rest (services.safety.protective_stop)
         intrusion = False
         if self.enforce and rows.min_h_all < 0.0:  # min over enabled rows: no row inside its margin, no intrusion
             person = rows.person_inside(0.0)
@@ -523,10 +529,10 @@ class SafetyFilter:
                           backing_out, capped > 0)
 
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
-                      n_pair: int, braking: np.ndarray | None = None) -> tuple:
+                      n_pair: int, braking: np.ndarray | None = None, stop: bool = False) -> tuple:
         """The step when the plain QP has no solution: the relaxed solve (:meth:`_relax`) in every box
         of :meth:`_relaxed_boxes` in turn until one works (``braking``: a protective stop's u_prev,
-        as there). Returns (u, mode, active rows, the pair rows that
+        as there; ``stop``: the step is a protective stop decided from its rows). Returns (u, mode, active rows, the pair rows that
         gave way (``n_pair``,), the names of every row that gave way, QP seconds, the box used (lower,
         upper), whether it honours the acceleration bound, whether it was the protective stop of
         :meth:`_relax`); u None and mode HOLD when no box works.
@@ -536,7 +542,7 @@ class SafetyFilter:
         seconds = 0.0
         for lower, upper, honours, keep_hard in self._relaxed_boxes(q, dt, braking):
             problem = QPProblem(w=problem.w, u_ref=problem.u_ref, A=A, b=b, lower=lower, upper=upper)
-            u, slack, spent, stopped = self._relax(problem, soft, margin, keep_hard)
+            u, slack, spent, stopped = self._relax(problem, soft, margin, keep_hard, stop)
             seconds += spent
             if u is not None:
                 gave = np.zeros(len(self.row_names), bool)
@@ -611,13 +617,16 @@ class SafetyFilter:
         yield lower, upper, False
 
     def _relax(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray,
-               keep_hard: bool) -> tuple[np.ndarray | None, np.ndarray, float, bool]:
+               keep_hard: bool, stop: bool = False) -> tuple[np.ndarray | None, np.ndarray, float, bool]:
         """The relaxed solve (module docstring): (u or None, slacks (m,), seconds, whether it is the
         protective stop).
 
         :class:`~services.safety.relaxation.LexicographicSolver` on ``problem`` (``keep_hard``: its
         braking point keeps the hard rows); when a soft
-        (robot–person) row gives way there and ``on_intrusion`` is "stop_on_give_way", the
+        (robot–person) row gives way there and ``on_intrusion`` is "stop_on_give_way", or "stop"
+        and the last step was a protective stop and this one is none yet (``stop``: a stop decided
+        from the rows, whose person rows are at their floors or backing out: a stop goes on while
+        person rows give way), the
         protective stop: the same solve again with every soft row at its floor, b_i ← min(b_i, 0)
         (never closer, no retreat demanded), aiming at ū, the box's point nearest rest, in the box
         narrowed to braking from u_prev (:func:`~services.safety.qp.box.braking_box`, which keeps ū). The slacks
@@ -627,7 +636,9 @@ class SafetyFilter:
         """
         penalty = self.params.relax_penalty
         first = self._relaxation.solve(problem, soft, margin, penalty, keep_hard=keep_hard)
-        if first.u is None or not first.gave or self.params.on_intrusion != _STOP_ON_GIVE_WAY:
+        on = self.params.on_intrusion
+        stops = on == _STOP_ON_GIVE_WAY or (on == _STOP and self.stops.stopped and not stop)
+        if first.u is None or not first.gave or not stops:
             return first.u, first.slack, first.seconds, False
         floored = problem.b.copy()
         np.minimum(floored, 0.0, out=floored, where=soft)

@@ -35,8 +35,16 @@ the robot could leave or while the camera still showed them elsewhere. Retreatin
 moves the robot along normals of capsules seen a camera latency ago, at up to γ|h| (0.9 m/s at
 h = −90 mm): on the test variants of the development clips (a full turn in place, a step of 1 m
 toward the robot) that swung hands into true thighs at 1 m/s and leaned the torso into a true
-forearm while the perceived pairs opened. The stop ends as soon as no person row is inside (h ≥ −1 mm) and imitation resumes under
-the ordinary rows. With the person swept ahead (``safety.human_predict_s``: each person capsule
+forearm while the perceived pairs opened. The stop ends once no person row is inside (h ≥ −1 mm)
+*and* the rows can be kept: a step right after a stop whose person rows give way in the relaxed
+solve (the person, just outside a margin as measured, closing faster than the robot could
+retreat) is the stop again, solved as ``stop_on_give_way`` solves every such step
+(:meth:`~services.safety.filter.SafetyFilter._relax`: every person row at its floor, aiming at
+rest, braking only), and so on while they give way; then imitation resumes under the ordinary
+rows. Traced with a noisy camera (the mirrored punches beside the robot): a fist jittered out of
+the margin for one frame, the stop ended, and the relaxed solve's retreat from the swept fist drove
+the left forearm at up to 2 rad/s of elbow into the true fist 18 mm inside it. With the person
+swept ahead (``safety.human_predict_s``: each person capsule
 widened by ``sweep`` to enclose where its velocity carries it) a row counts as inside only when
 the capsule as measured is (:attr:`~services.safety.barriers.pairs.BarrierRows.h_measured`, its h
 computed on the capsule as the camera showed it, for the rows the swept one puts inside): a person
@@ -229,6 +237,7 @@ class ProtectiveStop:
         """Forget the steps before (the filter restarts)."""
         self._aimed_rest = False  # the last step aimed at rest (a protective stop, or person rows gave way)
         self._rested = False  # since the steps began to aim at rest, a settle at rest was done
+        self._stopped = False  # the last step was a protective stop
 
     def at_fixed_body(self, b: np.ndarray) -> bool:
         """Whether a robot–person row of a capsule no joint moves asks for a positive rate (``b``
@@ -282,8 +291,14 @@ class ProtectiveStop:
         ("The servos only brake"): the steps aim at rest and their settle at rest was done."""
         return self._aimed_rest and self._rested
 
-    def stepped(self, aimed_rest: bool) -> None:
+    @property
+    def stopped(self) -> bool:
+        """Whether the last step was a protective stop."""
+        return self._stopped
+
+    def stepped(self, aimed_rest: bool, stopped: bool) -> None:
         """Record that the step just taken aimed at rest (a protective stop, or a relaxed step whose
-        person rows gave way) or did not."""
+        person rows gave way) or did not, and whether it was a protective stop."""
         self._aimed_rest = aimed_rest
+        self._stopped = stopped
         self._rested = self._rested and aimed_rest
