@@ -500,7 +500,7 @@ class SafetyFilter:
         else:
             u, mode, active, relaxed, gave_way, seconds, lower, upper, honours, gave_stop = self._relaxed_step(
                 problem, q, dt, soft_all[self._kept[: b.shape[0]]], self._kept[: b.shape[0]], rows.b.shape[0], braking,
-                stop)
+                in_stop=stop)
             qp_time += seconds
             gave_rest = bool((relaxed & soft_all[: relaxed.shape[0]]).any())  # stage 2 aimed at rest
             if gave_stop:  # the protective stop when person rows give way (module docstring): it tracked rest
@@ -529,20 +529,21 @@ class SafetyFilter:
                           backing_out, capped > 0)
 
     def _relaxed_step(self, problem: QPProblem, q: np.ndarray, dt: float, soft: np.ndarray, kept: np.ndarray,
-                      n_pair: int, braking: np.ndarray | None = None, stop: bool = False) -> tuple:
+                      n_pair: int, braking: np.ndarray | None = None, in_stop: bool = False) -> tuple:
         """The step when the plain QP has no solution: the relaxed solve (:meth:`_relax`) in every box
         of :meth:`_relaxed_boxes` in turn until one works (``braking``: a protective stop's u_prev,
-        as there; ``stop``: the step is a protective stop decided from its rows). Returns (u, mode, active rows, the pair rows that
-        gave way (``n_pair``,), the names of every row that gave way, QP seconds, the box used (lower,
-        upper), whether it honours the acceleration bound, whether it was the protective stop of
-        :meth:`_relax`); u None and mode HOLD when no box works.
+        as there; ``in_stop``: the step is a protective stop decided from its rows). Returns (u,
+        mode, active rows, the pair rows that gave way (``n_pair``,), the names of every row that
+        gave way, QP seconds, the box used (lower, upper), whether it honours the acceleration
+        bound, whether it was the protective stop of :meth:`_relax`); u None and mode HOLD when no
+        box works.
         ``soft`` and ``kept`` (their indices among all the stacked rows) of ``problem``'s rows."""
         A, b = problem.A, problem.b
         margin = self._shift[kept]  # each row's b shift
         seconds = 0.0
         for lower, upper, honours, keep_hard in self._relaxed_boxes(q, dt, braking):
             problem = QPProblem(w=problem.w, u_ref=problem.u_ref, A=A, b=b, lower=lower, upper=upper)
-            u, slack, spent, stopped = self._relax(problem, soft, margin, keep_hard, stop)
+            u, slack, spent, stopped = self._relax(problem, soft, margin, keep_hard, in_stop)
             seconds += spent
             if u is not None:
                 gave = np.zeros(len(self.row_names), bool)
@@ -617,14 +618,14 @@ class SafetyFilter:
         yield lower, upper, False
 
     def _relax(self, problem: QPProblem, soft: np.ndarray, margin: np.ndarray,
-               keep_hard: bool, stop: bool = False) -> tuple[np.ndarray | None, np.ndarray, float, bool]:
+               keep_hard: bool, in_stop: bool = False) -> tuple[np.ndarray | None, np.ndarray, float, bool]:
         """The relaxed solve (module docstring): (u or None, slacks (m,), seconds, whether it is the
         protective stop).
 
         :class:`~services.safety.relaxation.LexicographicSolver` on ``problem`` (``keep_hard``: its
         braking point keeps the hard rows); when a soft
         (robot–person) row gives way there and ``on_intrusion`` is "stop_on_give_way", or "stop"
-        and the last step was a protective stop and this one is none yet (``stop``: a stop decided
+        and the last step was a protective stop and this one is none yet (``in_stop``: a stop decided
         from the rows, whose person rows are at their floors or backing out: a stop goes on while
         person rows give way), the
         protective stop: the same solve again with every soft row at its floor, b_i ← min(b_i, 0)
@@ -637,7 +638,7 @@ class SafetyFilter:
         penalty = self.params.relax_penalty
         first = self._relaxation.solve(problem, soft, margin, penalty, keep_hard=keep_hard)
         on = self.params.on_intrusion
-        stops = on == _STOP_ON_GIVE_WAY or (on == _STOP and self.stops.stopped and not stop)
+        stops = on == _STOP_ON_GIVE_WAY or (on == _STOP and self.stops.stopped and not in_stop)
         if first.u is None or not first.gave or not stops:
             return first.u, first.slack, first.seconds, False
         floored = problem.b.copy()

@@ -42,8 +42,8 @@ retreat) is the stop again, solved as ``stop_on_give_way`` solves every such ste
 (:meth:`~services.safety.filter.SafetyFilter._relax`: every person row at its floor, aiming at
 rest, braking only), and so on while they give way; then imitation resumes under the ordinary
 rows. Traced with a noisy camera (the mirrored punches beside the robot): a fist jittered out of
-the margin for one frame, the stop ended, and the relaxed solve's retreat from the swept fist drove
-the left forearm at up to 2 rad/s of elbow into the true fist 18 mm inside it. With the person
+the margin for one frame, the stop ended, and the relaxed solve's retreat from the swept fist, the
+elbow at up to 2.3 rad/s, drove the left forearm deeper into the true fist 18 mm inside it. With the person
 swept ahead (``safety.human_predict_s``: each person capsule
 widened by ``sweep`` to enclose where its velocity carries it) a row counts as inside only when
 the capsule as measured is (:attr:`~services.safety.barriers.pairs.BarrierRows.h_measured`, its h
