@@ -3,7 +3,8 @@ every keypoint's height and distance from the turning axis and ends where it beg
 carries the person along the direction they face by exactly the step, a side-step towards their
 right, a scaled person keeps the floor point below the pelvis and scales every distance, a broadened
 one has its shoulders the width apart and its arms' segments unchanged, a mirrored one is the
-reflection with left and right swapped; bad input is refused; the ``safemimic`` command runs it."""
+reflection with left and right swapped, a faster one is the same motion sooner at the same frame
+rate; bad input is refused; the ``safemimic`` command runs it."""
 
 from __future__ import annotations
 
@@ -52,8 +53,8 @@ def test_a_side_step_goes_right_and_a_scaled_person_grows_about_the_floor_below_
     source = write_recording(tmp_path / "raise.npz", xyz)
     assert main([str(source), str(tmp_path / "out"), "--side-m", "0.4", "--scales", "0.8,1.25"]) == 0
     written = sorted(p.name for p in (tmp_path / "out").iterdir())
-    assert written == ["raise_mirror.npz", "raise_scale080.npz", "raise_scale125.npz", "raise_shoulders370mm.npz",
-                       "raise_sidestep.npz", "raise_stepin.npz", "raise_turn.npz"]
+    assert written == ["raise_fast150.npz", "raise_mirror.npz", "raise_scale080.npz", "raise_scale125.npz",
+                       "raise_shoulders370mm.npz", "raise_sidestep.npz", "raise_stepin.npz", "raise_turn.npz"]
     side, _ = read_recording(tmp_path / "out" / "raise_sidestep.npz")
     shift = side["xyz"][-1] - xyz[-1]
     np.testing.assert_allclose(shift, np.repeat(shift[:1], len(KEYPOINT_NAMES), axis=0), atol=1e-12)  # rigid
@@ -121,6 +122,33 @@ def test_a_mirrored_person_is_the_reflection_with_left_and_right_swapped(tmp_pat
     np.testing.assert_array_equal(mirror["conf"][:, PELVIS], conf[:, PELVIS])
 
 
+def test_a_faster_person_makes_the_same_motion_sooner_at_the_same_frame_rate(tmp_path: Path) -> None:
+    xyz = raise_recording(2.0) + [0.3, -0.2, 0.0]
+    xyz[7, KEYPOINT_INDEX["left_wrist"]] = np.nan  # a keypoint missing in one frame
+    conf = np.tile(np.linspace(0.5, 1.0, len(xyz))[:, None], (1, len(KEYPOINT_NAMES)))
+    source = tmp_path / "raise.npz"
+    np.savez(source, names=np.array(KEYPOINT_NAMES), t=0.5 + np.arange(len(xyz)) / 30.0, xyz=xyz,
+             fps=np.float64(30.0), conf=conf, motion=np.str_("raise"))
+    assert main([str(source), str(tmp_path / "out"), "--speeds", "1.5,2"]) == 0
+    fast, _ = read_recording(tmp_path / "out" / "raise_fast150.npz")
+    # 60 frames (0 … 59) at 1.5×: frames 0 … 39, frame k at original frame 1.5 k
+    assert len(fast["t"]) == 40 and float(fast["fps"]) == 30.0 and str(fast["motion"]) == "raise"
+    np.testing.assert_allclose(fast["t"], 0.5 + np.arange(40) / 30.0, atol=1e-12)
+    even = np.arange(0, 40, 2)
+    np.testing.assert_array_equal(fast["xyz"][even], xyz[3 * even // 2])  # exactly the original frames
+    np.testing.assert_allclose(fast["xyz"][1], 0.5 * (xyz[1] + xyz[2]), atol=1e-12)  # between two frames
+    np.testing.assert_allclose(fast["conf"][1], 0.5 * (conf[1] + conf[2]), atol=1e-12)
+    wrist = KEYPOINT_INDEX["left_wrist"]
+    # frame 7 is missing, and so is frame 5, made from it and frame 8 (1.5 × 5 = 7.5)
+    assert np.isnan(fast["xyz"][5, wrist]).all() and np.isfinite(fast["xyz"][[4, 6], wrist]).all()
+    twice, _ = read_recording(tmp_path / "out" / "raise_fast200.npz")
+    np.testing.assert_array_equal(twice["xyz"], xyz[::2])
+    speed = np.nanmax(np.linalg.norm(np.diff(twice["xyz"][:, wrist], axis=0), axis=-1))
+    assert speed == pytest.approx(np.nanmax(np.linalg.norm(xyz[2::2, wrist] - xyz[:-2:2, wrist], axis=-1)))
+    assert main([str(source), str(tmp_path / "none"), "--speeds", ""]) == 0
+    assert not list((tmp_path / "none").glob("*_fast*"))
+
+
 def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     np.savez(tmp_path / "bad.npz", names=np.array(["head"]), xyz=np.zeros((3, 1, 3)))
     assert main([str(tmp_path / "bad.npz"), str(tmp_path / "out")]) == 2
@@ -132,7 +160,12 @@ def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.
         with pytest.raises(SystemExit) as exit_:
             main([str(tmp_path / "bad.npz"), str(tmp_path / "out"), "--scales", bad])
         assert exit_.value.code == 2
-        assert "scales" in capsys.readouterr().err
+        assert "argument --scales" in capsys.readouterr().err
+    for bad in ("0", "fast", "inf"):
+        with pytest.raises(SystemExit) as exit_:
+            main([str(tmp_path / "bad.npz"), str(tmp_path / "out"), "--speeds", bad])
+        assert exit_.value.code == 2
+        assert "speeds" in capsys.readouterr().err
     for bad in ("-0.3", "2", "wide", "nan"):
         with pytest.raises(SystemExit) as exit_:
             main([str(tmp_path / "bad.npz"), str(tmp_path / "out"), "--shoulder-width", bad])
@@ -147,7 +180,7 @@ def test_the_safemimic_command_writes_every_variant_of_a_folder(tmp_path: Path,
     for name in ("a", "b"):
         write_recording(clips / f"{name}.npz", raise_recording(1.0))
     assert safemimic(["variants", str(clips), str(tmp_path / "out"), "--scales", "1.1"]) == 0
-    kinds = ["mirror", "scale110", "shoulders370mm", "sidestep", "stepin", "turn"]
+    kinds = ["fast150", "mirror", "scale110", "shoulders370mm", "sidestep", "stepin", "turn"]
     written = sorted(p.name for p in (tmp_path / "out").iterdir())
     assert written == sorted(f"{name}_{kind}.npz" for name in ("a", "b") for kind in kinds)
     assert capsys.readouterr().out.count("wrote ") == len(written)

@@ -1,5 +1,5 @@
-"""Test variants of recordings: the same motion turned in place, carried into the robot, or by a
-taller or shorter person.
+"""Test variants of recordings: the same motion turned in place, carried into the robot, by a
+taller or shorter person, or faster.
 
 The development clips are four; the product meets other people doing other things (turns, walking,
 someone stepping into the robot). ``safemimic variants IN OUT`` (or ``python -m
@@ -27,7 +27,13 @@ unchanged:
   (shoulder, elbow, wrist) carried outward along the frame's shoulder line so that the shoulders
   are that far apart in every frame, everything else unchanged (a broader person, or a skeleton
   whose shoulder keypoints sit further out, making the same motion: people's shoulders are
-  0.20–0.37 m apart, the development clips' 0.20 m; beside the robot the near arm comes closer).
+  0.20–0.37 m apart, the development clips' 0.20 m; beside the robot the near arm comes closer);
+- ``X_fastNNN.npz`` for each factor s of ``--speeds`` (1.5 by default; NNN = 100 s): the same motion
+  s times as fast, at the recording's own frame rate — frame k is the skeleton at s·k frame periods
+  of the original, interpolated linearly between its frames (a keypoint missing in either frame is
+  missing; every per-frame field likewise), so the clip lasts 1/s as long. A person faster than the
+  one recorded: the development clips' fastest wrists reach 5.1–5.2 m/s, a trained person's punch
+  7–10 m/s.
 
 Then ``safemimic evaluate --suite OUT`` evaluates them like any recording. The variants are
 geometric transforms of real motion, not new recordings: they test what the development clips do
@@ -46,6 +52,8 @@ import numpy as np
 NEEDED = ("pelvis", "left_shoulder", "right_shoulder")
 #: The size factors of the scaled variants (``--scales``): a 15 % shorter and a 15 % taller person.
 SCALES = (0.85, 1.15)
+#: Default factors of the faster variants (``--speeds``).
+SPEEDS = (1.5,)
 #: The shoulder width of the broadened variant (``--shoulder-width``, m): the broadest people's.
 BROAD_SHOULDERS = 0.37
 #: Each arm's keypoints, carried with its shoulder by :func:`broadened`.
@@ -141,6 +149,35 @@ def broadened(xyz: np.ndarray, names: list[str], width: float) -> np.ndarray:
     return out
 
 
+def quickened(fields: dict[str, np.ndarray], factor: float) -> dict[str, np.ndarray]:
+    """Recording ``fields`` played ``factor`` (> 0) times as fast, resampled at its own ``fps`` (module
+    docstring): ``t`` k / fps from the first frame; every other array with one row per frame
+    interpolated linearly in the original time at ``t[0]`` + factor · k / fps (NaN where either
+    neighbour is; integer and boolean fields take the earlier frame's); the rest unchanged."""
+    t = np.asarray(fields["t"], dtype=np.float64)
+    fps = float(np.asarray(fields["fps"]).reshape(()))
+    if not (factor > 0.0 and np.isfinite(factor)):
+        raise ValueError(f"a speed factor must be finite and > 0, got {factor}")
+    count = int(np.floor((t[-1] - t[0]) * fps / factor + 1e-9)) + 1
+    source_t = t[0] + factor * np.arange(count) / fps
+    before = np.clip(np.searchsorted(t, source_t, side="right") - 1, 0, len(t) - 1)
+    after = np.minimum(before + 1, len(t) - 1)
+    span = t[after] - t[before]
+    weight = np.where(span > 0.0, (source_t - t[before]) / np.where(span > 0.0, span, 1.0), 0.0)
+    out = dict(fields)
+    out["t"] = t[0] + np.arange(count) / fps
+    for key, value in fields.items():
+        if key == "t" or np.ndim(value) == 0 or len(value) != len(t):
+            continue
+        if not np.issubdtype(value.dtype, np.floating):
+            out[key] = value[before]
+            continue
+        w = weight.reshape((-1,) + (1,) * (value.ndim - 1))
+        mixed = (1.0 - w) * value[before] + w * value[after]
+        out[key] = np.where(w == 0.0, value[before], mixed)
+    return out
+
+
 def read_recording(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
     """Every field of recording ``path`` and its keypoint names; ValueError when it cannot make variants."""
     with np.load(path, allow_pickle=False) as data:
@@ -174,10 +211,15 @@ def variants(xyz: np.ndarray, names: list[str], turns: float = 1.0, step_m: floa
 
 
 def write_variants(source: Path, out: Path, turns: float = 1.0, step_m: float = 1.0, side_m: float = 0.5,
-                   scales: tuple[float, ...] = SCALES, shoulder_width: float = BROAD_SHOULDERS) -> list[Path]:
+                   scales: tuple[float, ...] = SCALES, shoulder_width: float = BROAD_SHOULDERS,
+                   speeds: tuple[float, ...] = SPEEDS) -> list[Path]:
     """The variants of recording ``source`` written into ``out``; their paths."""
     fields, names = read_recording(source)
     written = []
+    for factor in speeds:
+        path = out / f"{source.stem}_fast{round(100 * factor):03d}.npz"
+        np.savez(path, **quickened(fields, factor))
+        written.append(path)
     for suffix, xyz in variants(fields["xyz"], names, turns, step_m, side_m, scales, shoulder_width).items():
         path = out / f"{source.stem}_{suffix}.npz"
         conf = fields.get("conf")
@@ -188,14 +230,14 @@ def write_variants(source: Path, out: Path, turns: float = 1.0, step_m: float = 
     return written
 
 
-def _scales(text: str) -> tuple[float, ...]:
-    """``--scales``: comma-separated positive factors (argparse type)."""
+def _factors(text: str) -> tuple[float, ...]:
+    """``--scales``, ``--speeds``: comma-separated positive factors (argparse type)."""
     try:
         factors = tuple(float(part) for part in text.split(",") if part.strip())
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
     if not all(f > 0.0 and np.isfinite(f) for f in factors):
-        raise argparse.ArgumentTypeError(f"scales must be finite and > 0: {text!r}")
+        raise argparse.ArgumentTypeError(f"factors must be finite and > 0: {text!r}")
     return factors
 
 
@@ -224,11 +266,14 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument("--step-m", type=float, default=1.0, help="distance walked forward over the clip, m (default 1)")
     parser.add_argument("--side-m", type=float, default=0.5,
                         help="distance stepped towards the person's right over the clip, m (default 0.5)")
-    parser.add_argument("--scales", type=_scales, default=SCALES,
+    parser.add_argument("--scales", type=_factors, default=SCALES,
                         help="comma-separated size factors of the scaled variants (default "
                         f"{','.join(map(str, SCALES))}; '' for none)")
     parser.add_argument("--shoulder-width", type=_width, default=BROAD_SHOULDERS,
                         help=f"shoulder width of the broadened variant, m (default {BROAD_SHOULDERS}; 0 for none)")
+    parser.add_argument("--speeds", type=_factors, default=SPEEDS,
+                        help="comma-separated speed factors of the faster variants (default "
+                        f"{','.join(map(str, SPEEDS))}; '' for none)")
     return parser
 
 
@@ -245,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         for source in sources:
             for path in write_variants(source, args.out, args.turns, args.step_m, args.side_m, args.scales,
-                                       args.shoulder_width):
+                                       args.shoulder_width, args.speeds):
                 print(f"wrote {path}")
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
