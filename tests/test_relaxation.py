@@ -147,9 +147,13 @@ def test_in_an_acceleration_bound_the_braking_point_keeps_the_hard_rows_on_rando
     assert solver.solve(beyond, ~hard, np.zeros(2), 100.0).u is None
 
 
-@pytest.mark.parametrize("backend", ["daqp", "osqp"])
-def test_random_intrusions_keep_self_rows_and_never_close_in_on_the_person(backend: str) -> None:
-    p = pipeline_for(backend, on_intrusion="retreat")
+@pytest.mark.parametrize(("backend", "standoff"), [("daqp", 0.0), ("osqp", 0.0), ("daqp", 0.1)])
+def test_random_intrusions_keep_self_rows_and_never_close_in_on_the_person(backend: str, standoff: float) -> None:
+    """Random intrusions, rows infeasible together: never the numerical-failure hold, the self rows and
+    joint barriers kept, no person row below min(b_i, 0). With the standoff (``safety.human_standoff_m``)
+    its rows through rest once made DAQP report the relaxed problem infeasible (services.safety.standoff,
+    the creep)."""
+    p = pipeline_for(backend, on_intrusion="retreat", human_standoff_m=standoff)
     rng = np.random.default_rng(16)
     relaxed = 0
     for _ in range(40):

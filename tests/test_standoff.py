@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.safety.standoff import apply_standoff
+from services.safety.standoff import CREEP, apply_standoff
 from shared.names import CAPSULE_NAMES
 from tests.support.pipelines import DT, pipeline_for, random_safe_state
 
@@ -30,9 +30,9 @@ def test_a_row_only_tightens_never_demands_a_retreat_and_leaves_hard_and_disable
         untouched = ~soft | np.isnan(h)
         assert (out[untouched] == b[untouched]).all()
         near = soft & (h <= standoff)
-        assert (out[near] >= 0.0).all()  # within the standoff: no closing at all
+        assert (out[near] >= -CREEP).all()  # within the standoff: no closing beyond the creep
         far = soft & (h > standoff)
-        assert (out[far] >= -GAMMA * (h[far] - standoff) - 1e-15).all()
+        assert (out[far] >= -GAMMA * (h[far] - standoff) - CREEP - 1e-15).all()
     b = rng.normal(size=20)
     out = b.copy()
     apply_standoff(out, rng.uniform(0, 0.1, 20), np.ones(20, bool), GAMMA, 0.0)
@@ -57,7 +57,8 @@ def still_person_near_the_forearm(pipelines, rng: np.random.Generator, q: np.nda
 
 def test_the_filter_closes_on_no_person_capsule_within_the_standoff_on_random_states() -> None:
     """From rest (no acceleration bound on a first step) the plain QP holds every row: a person row
-    whose h is within D = 0.05 m allows no closing, one beyond it closing at γ (h − D) at most; the same
+    whose h is within D = 0.05 m allows no closing (but the 0.1 mm/s creep), one beyond it closing at
+    γ (h − D) at most; the same
     targets without the standoff close on the person within D (so the rows are what stops them)."""
     with_standoff, without = pipeline_for(human_standoff_m=0.05), pipeline_for(human_standoff_m=0.0)
     kin = with_standoff.kinematics
@@ -79,8 +80,8 @@ def test_the_filter_closes_on_no_person_capsule_within_the_standoff_on_random_st
         if result.protective_stop or result.relaxed.any():
             continue
         rate = rows.A @ result.u
-        assert (rate[near] >= -1e-6).all(), rate[near]
-        assert (rate[far] >= -gamma * (rows.h[far] - 0.05) - 1e-6).all()
+        assert (rate[near] >= -CREEP - 1e-6).all(), rate[near]
+        assert (rate[far] >= -gamma * (rows.h[far] - 0.05) - CREEP - 1e-6).all()
         checked += 1
         free = without.filter.step(q_nom, DT)
         closed_without += bool((rows.A[near] @ free.u < -1e-3).any())
