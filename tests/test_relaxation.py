@@ -405,7 +405,8 @@ def test_a_person_inside_a_margin_stops_the_robot_without_a_retreat_on_random_st
     assert not alone.filter.step(alone.kinematics.q_home, DT).protective_stop
 
 
-def test_a_person_standing_inside_a_margin_is_backed_out_of_on_random_states() -> None:
+@pytest.mark.parametrize("standoff", [0.0, 0.1])
+def test_a_person_standing_inside_a_margin_is_backed_out_of_on_random_states(standoff: float) -> None:
     """Backing out (``safety.intrusion_backout_mps``, default 0.05 m/s): a person standing still
     with capsules inside the left forearm's margin, on random states with the robot moving and the
     imitation pulling anywhere. Every step until no person row is inside is a protective stop
@@ -414,8 +415,11 @@ def test_a_person_standing_inside_a_margin_is_backed_out_of_on_random_states() -
     on most states the stop ends within 3 s, the robot out of the margin. The same person walking in
     at 0.2 m/s, or with backing out off, stops the robot where it is and it stays inside; so does a
     still person inside the torso's margin. A capsule held from memory makes the person's speed
-    unknown."""
-    p, off, walking = pipeline_for(), pipeline_for(intrusion_backout_mps=0.0), pipeline_for()
+    unknown. The same with a standoff (``safety.human_standoff_m``; with its rows exactly at b = 0
+    within D, before its creep, nothing was backed out of)."""
+    p = pipeline_for(human_standoff_m=standoff)
+    off = pipeline_for(intrusion_backout_mps=0.0, human_standoff_m=standoff)
+    walking = pipeline_for(human_standoff_m=standoff)
     rng = np.random.default_rng(41)
     ended = 0
     for _ in range(15):
