@@ -154,10 +154,10 @@ def quickened(fields: dict[str, np.ndarray], factor: float) -> dict[str, np.ndar
     docstring): ``t`` k / fps from the first frame; every other array with one row per frame
     interpolated linearly in the original time at ``t[0]`` + factor · k / fps (NaN where either
     neighbour is; integer and boolean fields take the earlier frame's); the rest unchanged."""
-    t = np.asarray(fields["t"], dtype=np.float64)
-    fps = float(np.asarray(fields["fps"]).reshape(()))
     if not (factor > 0.0 and np.isfinite(factor)):
         raise ValueError(f"a speed factor must be finite and > 0, got {factor}")
+    t = np.asarray(fields["t"], dtype=np.float64)
+    fps = float(np.asarray(fields["fps"]).reshape(()))
     count = int(np.floor((t[-1] - t[0]) * fps / factor + 1e-9)) + 1
     source_t = t[0] + factor * np.arange(count) / fps
     before = np.clip(np.searchsorted(t, source_t, side="right") - 1, 0, len(t) - 1)
