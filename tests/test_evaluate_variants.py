@@ -147,6 +147,8 @@ def test_a_faster_person_makes_the_same_motion_sooner_at_the_same_frame_rate(tmp
     assert speed == pytest.approx(np.nanmax(np.linalg.norm(xyz[2::2, wrist] - xyz[:-2:2, wrist], axis=-1)))
     assert main([str(source), str(tmp_path / "none"), "--speeds", ""]) == 0
     assert not list((tmp_path / "none").glob("*_fast*"))
+    np.savez(tmp_path / "untimed.npz", names=np.array(KEYPOINT_NAMES), xyz=xyz)
+    assert main([str(tmp_path / "untimed.npz"), str(tmp_path / "untimed")]) == 2  # a clear error, no traceback
 
 
 def test_variants_refuse_what_is_not_a_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -156,6 +156,8 @@ def quickened(fields: dict[str, np.ndarray], factor: float) -> dict[str, np.ndar
     neighbour is; integer and boolean fields take the earlier frame's); the rest unchanged."""
     if not (factor > 0.0 and np.isfinite(factor)):
         raise ValueError(f"a speed factor must be finite and > 0, got {factor}")
+    if "t" not in fields or "fps" not in fields:
+        raise ValueError("a faster variant needs the recording's 't' and 'fps' (--speeds '' for none)")
     t = np.asarray(fields["t"], dtype=np.float64)
     fps = float(np.asarray(fields["fps"]).reshape(()))
     count = int(np.floor((t[-1] - t[0]) * fps / factor + 1e-9)) + 1
