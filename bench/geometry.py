@@ -85,8 +85,13 @@ def title(geometry: str, k: int | None) -> str:
 def configured(conf: StackConfig, geometry: str, k: int | None) -> StackConfig:
     """``conf`` with ``safety.geometry`` (and ``safety.sphere_k``) set, and the paper's margins: no
     person margin (``safety.human_margin`` is ours; with it the person's spheres at k = 0, already
-    5.9 mm inside their barrier at home, start 17 mm inside and the arm raise cannot recover)."""
-    safety = {"geometry": GeometryName(geometry), "human_margin": 0.0} | ({} if k is None else {"sphere_k": k})
+    5.9 mm inside their barrier at home, start 17 mm inside and the arm raise cannot recover) and no
+    standoff (``safety.human_standoff_m``, ours: with it the spheres at k = 0 on the arm raise, the
+    filter alone, swing the left shoulder 1.3 rad off its target to keep every person capsule's
+    standoff, brake there, and the person's near arm sweeps into the stopped robot, own h −89 mm; the
+    paper's Table I compares the geometries on the paper's rows)."""
+    safety = ({"geometry": GeometryName(geometry), "human_margin": 0.0, "human_standoff_m": 0.0}
+              | ({} if k is None else {"sphere_k": k}))
     return conf.model_copy(update={"safety": conf.safety.model_copy(update=safety)})
 
 

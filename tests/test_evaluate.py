@@ -50,7 +50,6 @@ def test_paper_scenarios_violate_without_and_are_safe_with_the_cbf(scenario: str
     assert cbf["contacts_robot_robot"] == 0 and cbf["contacts_robot_human"] == 0, cbf
     # and so against the truth: at the simulated joints, with the true (undelayed) person
     assert cbf["true_min_h_self"] >= -1e-3 and cbf["true_contacts_robot_human"] == 0, cbf
-    assert abs(cbf["rms_tracking_free"] - nominal["rms_tracking_free"]) <= 0.01
     assert cbf["rms_tracking"] > nominal["rms_tracking"]  # the layer did bend the motion
     assert cbf["nan_count"] == 0 and nominal["nan_count"] == 0
     assert cbf["hold_steps"] == 0
@@ -58,6 +57,21 @@ def test_paper_scenarios_violate_without_and_are_safe_with_the_cbf(scenario: str
     assert cbf["person_lost_steps"] == nominal["person_lost_steps"] == 0  # seen throughout
     assert metrics["input"]["free_steps"] < metrics["input"]["control_steps"]
     assert metrics["input"]["robot_model"] == ("g1.xml" if model == "real_g1" else "default")
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_the_paper_rows_lose_nothing_while_no_constraint_binds(scenario: str) -> None:
+    """The paper's claim for its rows (no standoff: ``safety.human_standoff_m`` 0): while no constraint
+    binds, the CBF run tracks its target as the run without the layer does (RMS within 0.01 rad). With
+    the default standoff (0.1 m) the cross-arm reach has fewer free steps and on some of them the CBF
+    run is still catching up after a binding one, 0.022 against 0.010 rad, and the side-by-side arm
+    raise has none (the raised arm is held off the person's throughout; measured)."""
+    conf = evaluation_config(None, scenario, "side-by-side", None)
+    conf = conf.model_copy(update={"safety": conf.safety.model_copy(update={"human_standoff_m": 0.0})})
+    metrics = evaluate(conf).metrics()
+    cbf, nominal = metrics["cbf"], metrics["nominal"]
+    assert 0 < metrics["input"]["free_steps"] < metrics["input"]["control_steps"]
+    assert abs(cbf["rms_tracking_free"] - nominal["rms_tracking_free"]) <= 0.01, (cbf, nominal)
 
 
 def _scripted_fidelity(method: str = "linear", scenario: str = "reach-forward", **safety: object) -> dict:
@@ -69,25 +83,32 @@ def _scripted_fidelity(method: str = "linear", scenario: str = "reach-forward", 
 
 
 def test_fidelity_of_a_scripted_reach_with_feed_forward_and_targets_between_frames() -> None:
-    """The scripted reach (no constraint binds after the first second) at the default 60 ms camera
-    latency, judged against the true person at the simulated joints; deterministic, not timed.
+    """The scripted reach toward a person facing the robot at the default 60 ms camera latency, judged
+    against the true person at the simulated joints; deterministic, not timed. The imitation's own
+    fidelity is measured without the standoff (``safety.human_standoff_m`` 0), where no constraint
+    binds after the first second.
 
-    Met: rms_true_free ≤ 0.05 rad; lag ≤ latency + 20 ms (measured 76 ms: the target 82 ms behind
-    the truth, 60 latency + ≈ 22 of point filter and θ̇ estimate, the command 6 ms ahead of it once
+    Met: rms_true_free ≤ 0.05 rad; lag ≤ latency + 20 ms (measured 80 ms: the target 82 ms behind
+    the truth, 60 latency + ≈ 22 of point filter and θ̇ estimate, the command 2 ms ahead of it once
     the reach slows); the controller and servos add < 2° to the arm-direction error the
     retargeting itself leaves (the robot exactly at q_true); safe against the truth. Without the
     velocity feed-forward (the paper's eq. 7) or without the targets between frames the robot
-    trails by more than 1/K more."""
-    default = _scripted_fidelity()
-    fidelity = default["fidelity"]
+    trails by more than 1/K more. With the default standoff (0.1 m) the hands reaching toward the
+    person's are held off them: lag 110 ms (the command 26 ms behind q_nom; measured), as safe."""
+    free = _scripted_fidelity(human_standoff_m=0.0)
+    fidelity = free["fidelity"]
     assert fidelity["rms_true_free"] <= 0.05, fidelity
     assert fidelity["lag_ms"] <= 60.0 + 20.0, fidelity
     assert fidelity["direction_error_deg_p95"] <= fidelity["direction_error_deg_p95_at_target"] + 2.0, fidelity
-    assert default["true_min_h_self"] >= -1e-3 and default["true_contacts_robot_human"] == 0, default
-    assert default["robot_approach_steps"] == 0 and default["nan_count"] == 0, default
-    for paper_like in (_scripted_fidelity(feedforward=False), _scripted_fidelity(extrapolate_max_s=0.0)):
+    for paper_like in (_scripted_fidelity(feedforward=False, human_standoff_m=0.0),
+                       _scripted_fidelity(extrapolate_max_s=0.0, human_standoff_m=0.0)):
         assert paper_like["fidelity"]["lag_ms"] >= fidelity["lag_ms"] + 80.0, paper_like["fidelity"]
         assert paper_like["fidelity"]["rms_true_free"] >= 1.5 * fidelity["rms_true_free"], paper_like["fidelity"]
+    default = _scripted_fidelity()
+    assert fidelity["lag_ms"] + 20.0 <= default["fidelity"]["lag_ms"] <= fidelity["lag_ms"] + 40.0, default["fidelity"]
+    for run in (free, default):
+        assert run["true_min_h_self"] >= -1e-3 and run["true_contacts_robot_human"] == 0, run
+        assert run["robot_approach_steps"] == 0 and run["nan_count"] == 0, run
 
 
 def test_a_continuous_target_path_follows_each_frame_within_that_frame() -> None:

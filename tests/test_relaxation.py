@@ -23,6 +23,7 @@ from services.safety.protective_stop import STILL_JOINT_SPEED
 from services.safety.human_memory import padded, swept_capsules
 from services.safety.qp import QPProblem
 from services.safety.relaxation import RELAXED_TOL, LexicographicSolver
+from services.safety.standoff import apply_standoff
 from shared.messages import SafetyMode
 from shared.names import CAPSULE_NAMES
 from tests.support.pipelines import DT, alone_at, pipeline_for, random_safe_state
@@ -33,9 +34,13 @@ FOREARM = CAPSULE_NAMES.index("left_forearm")
 
 
 def stacked(p, q):
+    """(A, b, soft) of the rows the filter stacks at ``q``: every barrier's, the person rows' b raised by
+    the standoff (services.safety.standoff), without the self margin's shift of the hard rows."""
     blocks = p.filter.blocks_at(q)
-    return (np.vstack([b.A for b in blocks]), np.concatenate([b.b for b in blocks]),
-            np.concatenate([b.soft for b in blocks]))
+    b, soft = np.concatenate([block.b for block in blocks]), np.concatenate([block.soft for block in blocks])
+    params = p.filter.params
+    apply_standoff(b, np.concatenate([block.h for block in blocks]), soft, params.gamma, params.human_standoff_m)
+    return np.vstack([block.A for block in blocks]), b, soft
 
 
 def random_intrusion(p, rng: np.random.Generator, *others, speeds: tuple[float, float] = (1.0, 3.0),

@@ -119,7 +119,7 @@ def write_outputs(evaluation: Evaluation, out: Path, rrd: Path | None = None) ->
     (out / "contacts.json").write_text(json.dumps(contacts, indent=2) + "\n")
     title = f"{e.source.name}, placement {e.placement}, robot model {metrics['input']['robot_model']}"
     plot_joints(e.cbf, e.nominal, e.person, e.kinematics.joint_names, out / "joints.png", title)
-    plot_barriers(e.cbf, e.nominal, e.conf.safety.phi, out / "barriers.png", title)
+    plot_barriers(e.cbf, e.nominal, e.conf.safety.phi, out / "barriers.png", title, e.conf.safety.human_standoff_m)
     render_snapshot(e.conf, e.kinematics, e.human, e.person, e.cbf, e.nominal, out / "snapshot.png")
     if rrd is not None:
         from safemimic.evaluate.recording import write_rrd  # rerun-sdk (the viz extra): only when asked

@@ -5,8 +5,9 @@ the perceived target q_nom, the command without the CBF layer and the simulated 
 where a CBF row binds the background is shaded.
 ``barriers.png``: every monitored h over time in the CBF run (thin lines), self pairs above and
 robot–human pairs below, with the minimum over the pairs of both runs, the zero line, the line
-where the capsules touch (h = −φ) and the global minimum of each run marked; in green the CBF
-run's true minimum (q_sim against the true person, as h = clearance − φ).
+where the capsules touch (h = −φ), the standoff from the person (h = D, ``safety.human_standoff_m``,
+when set) and the global minimum of each run marked; in green the CBF run's true minimum (q_sim
+against the true person, as h = clearance − φ).
 """
 
 from __future__ import annotations
@@ -87,8 +88,9 @@ def _mark_minimum(ax, ep: Episode, low: np.ndarray, columns: np.ndarray, color: 
     )
 
 
-def plot_barriers(cbf: Episode, nominal: Episode, phi: float, path: Path, title: str) -> Path:
-    """Write ``barriers.png``: every monitored h (m) over time, self and robot–human pairs."""
+def plot_barriers(cbf: Episode, nominal: Episode, phi: float, path: Path, title: str, standoff: float = 0.0) -> Path:
+    """Write ``barriers.png``: every monitored h (m) over time, self and robot–human pairs (``phi`` φ and
+    ``standoff`` D in m; D = 0: no standoff line)."""
     fig, axes = plt.subplots(2, 1, figsize=(11, 7.5), sharex=True, constrained_layout=True)
     is_self = cbf.pairs.is_self
     for ax, columns, kind in ((axes[0], is_self, "self pairs"), (axes[1], ~is_self, "robot–human pairs")):
@@ -106,6 +108,9 @@ def plot_barriers(cbf: Episode, nominal: Episode, phi: float, path: Path, title:
                 label="true min h with CBF (simulated joints, true person)")
         ax.axhline(0.0, color="black", lw=1.0, label="h = 0 (safety boundary)")
         ax.axhline(-phi, color="black", lw=0.8, ls=":", label=f"h = −φ (capsules touch, φ = {1e3 * phi:g} mm)")
+        if standoff > 0.0 and kind != "self pairs":
+            ax.axhline(standoff, color="grey", lw=0.8, ls="-.",
+                       label=f"h = D (standoff {1e3 * standoff:g} mm: the robot closes no nearer)")
         _mark_minimum(ax, nominal, unsafe, columns, UNSAFE_COLOR, "without CBF")
         _mark_minimum(ax, cbf, safe, columns, SAFE_COLOR, "with CBF")
         finite = np.concatenate([unsafe[np.isfinite(unsafe)], safe[np.isfinite(safe)], [0.0]])

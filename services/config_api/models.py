@@ -181,7 +181,7 @@ class SafetyPatch(_Patch):
     )
     human_standoff_m: _like(SafetyConfig, "human_standoff_m") = Field(
         None, description="the robot closes on no person capsule nearer than this by its own motion (m, beyond φ and the "
-        "person margin); never a retreat; 0: none (the paper)"
+        "person margin); never a retreat; 0.1: a person at 1.6 m/s over the camera's 60 ms; 0: none (the paper)"
     )
     human_speed_mps: _like(SafetyConfig, "human_speed_mps") = Field(
         None, description="speed and separation: near a person no joint is asked for a speed it could not brake from "
