@@ -85,12 +85,14 @@ def stop(proc, event: str = "stopped") -> dict:
     return proc.wait_json(event, timeout=20)
 
 
-def command_once_ramped_in(endpoint: str, q: np.ndarray) -> None:
-    """Once the executor is alive, command ``q`` for the ramp-in and 0.7 s more."""
+def command_ramped_in(service, endpoint: str, q: np.ndarray) -> None:
+    """Once the executor ``service`` is alive, command ``q`` until its ramp-in is done (its log says so:
+    a fixed wait fell short on a loaded machine) and 0.7 s more."""
     with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
         BusRecorder(bus, (), alive=True).wait_token("executor", True, timeout_s=30)
         commander = Commander(bus, q)
-        time.sleep(RAMP_IN_S + 0.7)
+        service.wait_for(lambda line: "(ramp-in done)" in line, timeout=RAMP_IN_S + 15.0)
+        time.sleep(0.7)
         commander.stop()
 
 
@@ -188,11 +190,7 @@ def test_locked_waist(spawn, tmp_path: Path, policy: str) -> None:
         assert "cannot move ['waist_roll_joint', 'waist_pitch_joint']" in output and "arms_only" in output
         assert stop(robot)["frames"] == 0, "nothing was sent"
         return
-    with Bus(BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False), "g1", "test") as bus:
-        BusRecorder(bus, (), alive=True).wait_token("executor", True, timeout_s=30)
-        commander = Commander(bus, TARGET)  # waist roll 0.1, pitch 0.05: dropped
-        time.sleep(RAMP_IN_S + 0.7)
-        commander.stop()
+    command_ramped_in(service, endpoint, TARGET)  # waist roll 0.1, pitch 0.05: dropped
     g1 = stop(service)["robot"]
     stop(robot)
     assert g1["dropped_joints"] == ["waist_roll_joint", "waist_pitch_joint"]
@@ -213,7 +211,7 @@ def test_arm_sdk_limits_the_waist_lean_by_default(spawn, tmp_path: Path, waist_r
     service, endpoint = start_executor(spawn, dds, **({} if waist_range is None else {"arm_sdk_waist_range": waist_range}))
     lean = TARGET.copy()
     lean[:2] = [0.25, 0.3]  # waist rolled and pitched forward, arms raised forward (TARGET's)
-    command_once_ramped_in(endpoint, lean)
+    command_ramped_in(service, endpoint, lean)
     stop(service)
     stop(robot)
     r = load(record)
@@ -232,7 +230,7 @@ def test_lowcmd_mode_commands_every_motor(spawn, tmp_path: Path) -> None:
     dds = domain()
     robot, record = start_robot(spawn, tmp_path, dds)
     service, endpoint = start_executor(spawn, dds, mode="lowcmd")
-    command_once_ramped_in(endpoint, TARGET)
+    command_ramped_in(service, endpoint, TARGET)
     g1 = stop(service)["robot"]
     summary = stop(robot)
     assert g1["topic"] == "rt/lowcmd" and summary["arm_sdk"] == 0 and summary["bad_crc"] == 0
