@@ -59,14 +59,15 @@ def test_paper_scenarios_violate_without_and_are_safe_with_the_cbf(scenario: str
     assert metrics["input"]["robot_model"] == ("g1.xml" if model == "real_g1" else "default")
 
 
+@pytest.mark.parametrize("model", ["ours", "real_g1"])
 @pytest.mark.parametrize("scenario", SCENARIOS)
-def test_the_paper_rows_lose_nothing_while_no_constraint_binds(scenario: str) -> None:
+def test_the_paper_rows_lose_nothing_while_no_constraint_binds(scenario: str, model: str) -> None:
     """The paper's claim for its rows (no standoff: ``safety.human_standoff_m`` 0): while no constraint
     binds, the CBF run tracks its target as the run without the layer does (RMS within 0.01 rad). With
     the default standoff (0.1 m) the cross-arm reach has fewer free steps and on some of them the CBF
     run is still catching up after a binding one, 0.022 against 0.010 rad, and the side-by-side arm
     raise has none (the raised arm is held off the person's throughout; measured)."""
-    conf = evaluation_config(None, scenario, "side-by-side", None)
+    conf = evaluation_config(None, scenario, "side-by-side", robot_model(model))
     conf = conf.model_copy(update={"safety": conf.safety.model_copy(update={"human_standoff_m": 0.0})})
     metrics = evaluate(conf).metrics()
     cbf, nominal = metrics["cbf"], metrics["nominal"]
