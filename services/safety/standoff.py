@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.safety.barriers.kernel import raise_to_standoff
+
 __all__ = ["CREEP", "apply_standoff"]
 
 #: m/s of barrier rate a row within the standoff may still close at (module docstring)
@@ -51,7 +53,5 @@ def apply_standoff(b: np.ndarray, h: np.ndarray, soft: np.ndarray, gamma: float,
     """Raise, in place, each soft row's ``b`` (M,) (m/s of barrier rate) to −γ max(h − D, 0) − c where that is
     higher (module docstring); ``h`` (M,) m each row's barrier value (NaN: disabled, left alone),
     ``soft`` (M,) bool the robot–person rows, ``gamma`` (1/s), ``standoff`` D (m, ≥ 0; 0: nothing)."""
-    if standoff <= 0.0:
-        return
-    floor = -gamma * np.maximum(h - standoff, 0.0) - CREEP  # NaN where h is NaN: fmax keeps b there
-    np.fmax(b, floor, out=b, where=soft)
+    if standoff > 0.0:
+        raise_to_standoff(b, h, np.asarray(soft, dtype=np.bool_), float(gamma), float(standoff), CREEP)

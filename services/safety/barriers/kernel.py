@@ -184,6 +184,17 @@ def movable_mask(A, tol, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def raise_to_standoff(b, h, soft, gamma, standoff, creep):  # pragma: no cover - compiled
+    """b_i ← max(b_i, −γ max(h_i − D, 0) − c) on the ``soft`` rows whose h is not NaN, in place
+    (:func:`services.safety.standoff.apply_standoff`: D = ``standoff``, c = ``creep``)."""
+    for i in range(b.shape[0]):
+        if soft[i] and h[i] == h[i]:
+            floor = -gamma * max(h[i] - standoff, 0.0) - creep
+            if floor > b[i]:
+                b[i] = floor
+
+
+@njit(cache=True, nogil=True)
 def any_positive(values, rows):  # pragma: no cover - compiled
     """Whether values[i] > 0 for some i in ``rows`` (a NaN is not)."""
     for i in rows:
