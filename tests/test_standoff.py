@@ -4,11 +4,15 @@ capsule within the standoff while it closes at γ h without one (random states o
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 
 from services.safety.standoff import CREEP, apply_standoff
 from shared.names import CAPSULE_NAMES
 from tests.support.pipelines import DT, pipeline_for, random_safe_state
+from tests.support.team import REPO
 
 FOREARM = CAPSULE_NAMES.index("left_forearm")
 GAMMA = 10.0
@@ -87,3 +91,16 @@ def test_the_filter_closes_on_no_person_capsule_within_the_standoff_on_random_st
         closed_without += bool((rows.A[near] @ free.u < -1e-3).any())
     assert checked >= 30, checked
     assert closed_without >= 10, closed_without  # without it the same targets close in within D
+
+
+def test_the_warm_up_compiles_the_standoff_kernel_for_a_standoff_set_later_in_place() -> None:
+    """A pipeline without a standoff never calls its compiled kernel; the standoff is set in place
+    (no new pipeline), so its first call would compile inside a control tick unless the warm-up did
+    it first. In a fresh process: after the warm-up the kernel has its compiled signature."""
+    code = ("from services.safety.barriers.kernel import raise_to_standoff\n"
+            "from tests.support.pipelines import DT, pipeline_for\n"
+            "pipeline_for(human_standoff_m=0.0).warm_up(DT)\n"
+            "print(len(raise_to_standoff.signatures))\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert int(done.stdout.split()[-1]) >= 1, done.stdout

@@ -17,6 +17,7 @@ from services.safety.kinematics import RobotKinematics
 from services.safety.pairs import N_ROBOT, PairSet, make_pair_set, preset_pair_set, select_groups
 from services.safety.qp import make_backend
 from services.safety.retarget import Retargeter
+from services.safety.standoff import apply_standoff
 from shared.config import GeometryName, PairGroup, RetargetMethod, StackConfig
 from shared.lowpass import angle_rate_filter
 from shared.messages import HumanState
@@ -39,7 +40,8 @@ class SafetyPipeline:
     def warm_up(self, dt: float, q: np.ndarray | None = None, human: HumanState | None = None, steps: int = 3) -> None:
         """Throw-away steps from ``q`` (default: the filter's) with ``human``'s capsules, so one-time
         lazy work (numba's compiled-function cache, a QP solver's first setup: 0.2–0.3 s measured
-        here; the kernels of the boxes only an infeasible step uses) and the solver's warm start
+        here; the kernels of the boxes only an infeasible step uses, and the standoff's, which a
+        standoff of 0 never calls) and the solver's warm start
         happen now, not inside a control tick. The filter ends at ``q``."""
         filt = self.filter
         q = filt.q_cbf.copy() if q is None else np.array(q, dtype=np.float64)
@@ -51,6 +53,7 @@ class SafetyPipeline:
         for _ in range(steps):
             filt.step(q, dt)
         filt.compile_boxes(dt)
+        apply_standoff(np.zeros(1), np.zeros(1), np.ones(1, dtype=np.bool_), 1.0, 1.0)  # for a standoff set in place later
         filt.reset(q)
         self.retargeter.warm_up()
 
