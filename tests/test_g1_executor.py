@@ -120,12 +120,17 @@ def test_arm_sdk_ramps_follows_and_ramps_out_on_lost_state_and_commands(spawn, t
 
         commander = Commander(bus, TARGET)
         wait_until(lambda: np.abs(states.last("robot/joint_state").q - TARGET).max() < 0.02, 5)  # ramped in, followed
+        # each phase is awaited in the executor's log, not slept for: fixed waits fell short on a loaded machine
         robot.popen.send_signal(signal.SIGUSR1)  # the robot's state stream stops ...
-        time.sleep(1.0)
-        robot.popen.send_signal(signal.SIGUSR1)  # ... and comes back
-        time.sleep(1.5)  # ramps in again
-        last_command = commander.stop()
-        time.sleep(0.5 + 0.3 + RAMP_OUT_S + 0.4)  # service hold, G1 command timeout, ramp-out
+        service.wait_for(lambda line: "(state timeout)" in line, timeout=10)
+        service.wait_for(lambda line: "(ramp-out done)" in line, timeout=RAMP_OUT_S + 10)
+        robot.popen.send_signal(signal.SIGUSR1)  # ... and comes back: it ramps in again
+        service.wait_for(lambda line: "(ramp-in done)" in line, timeout=RAMP_IN_S + 15)
+        time.sleep(0.2)
+        last_command = commander.stop()  # the service holds, then the G1's command timeout ramps out
+        service.wait_for(lambda line: "(command timeout)" in line, timeout=10)
+        service.wait_for(lambda line: "(ramp-out done)" in line, timeout=RAMP_OUT_S + 10)
+        time.sleep(0.2)  # frames at weight 0
     counters = stop(service)
     summary = stop(robot)
     g1 = counters["robot"]
@@ -253,7 +258,8 @@ def test_dry_run_sends_nothing_and_prints_checked_frames(spawn, tmp_path: Path) 
         BusRecorder(bus, (), alive=True).wait_token("executor", True, timeout_s=30)
         commander = Commander(bus, TARGET)
         frame = service.wait_json("g1_frame", timeout=10)
-        time.sleep(RAMP_IN_S + 0.3)
+        for _ in range(2):  # two more, dry_run_print_s apart
+            service.wait_json("g1_frame", timeout=10)
         commander.stop()
     counters = stop(service)
     assert stop(robot)["frames"] == 0, "a dry run publishes nothing"
