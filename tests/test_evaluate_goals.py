@@ -64,11 +64,14 @@ def test_a_run_whose_floor_misses_the_goal_is_counted_beyond_the_floor() -> None
                                       "direction_error_deg_p95_latency_floor": 18.0})
     behind = run("slow", fidelity={"direction_error_deg_p95": 30.0, "direction_error_deg_p95_at_target": 10.0,
                                    "direction_error_deg_p95_latency_floor": 12.0})
-    report = goal_report([inside_the_legs, closing_in, late, retargeted, seen_late, behind])
+    too_fast = run("punch", fidelity={"lag_ms": 130.0, "lag_ms_limits_floor": 91.0})  # the bounds alone: 91 > 80
+    within_reach = run("raise", fidelity={"lag_ms": 99.0, "lag_ms_limits_floor": 58.0})
+    report = goal_report([inside_the_legs, closing_in, late, retargeted, seen_late, behind, too_fast, within_reach])
     contacts = row(report, "true contacts ≤ 10 % of the run without the CBF")
     assert (contacts["failed"], contacts["beyond_floor"]) == (2, 1)
     assert contacts["failing"] == ["walk (facing) [floor]", "reach (facing)"]
     assert row(report, "rms_true_free ≤ 0.05 rad")["failing"] == ["late (facing) [floor]"]
+    assert row(report, "lag ≤ latency + 20 ms")["failing"] == ["punch (facing) [floor]", "raise (facing)"]
     assert row(report, "arm direction p95 ≤ 15°")["failing"] == ["far (facing) [floor]", "fast (facing) [floor]",
                                                                   "slow (facing)"]
 

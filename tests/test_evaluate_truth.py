@@ -14,7 +14,7 @@ import pytest
 from safemimic.evaluate.episode import run_episode
 from safemimic.evaluate.evaluation import evaluation_config, true_person_of
 from safemimic.evaluate.fidelity import (
-    ACQUIRE_S, best_delay, delayed, direction_errors, fidelity, judged_from, lag_ms,
+    ACQUIRE_S, best_delay, delayed, direction_errors, fidelity, judged_from, lag_ms, limited_follower,
 )
 from safemimic.evaluate.person import CameraModel, corrupt, interpolate_skeleton, latency_text, perceive
 from safemimic.evaluate.source import EvaluationInput, open_input
@@ -382,6 +382,30 @@ def test_lag_recovers_a_known_delay() -> None:
     assert lag_ms(np.zeros((4000, 8)), np.zeros((4000, 8)), dt) is None  # nothing moves
 
 
+def test_the_limited_follower_keeps_its_bounds_and_lags_only_where_they_bind() -> None:
+    """limited_follower: never faster than u_max nor accelerating beyond accel_max (a noisy reference
+    included); a motion within both bounds is followed with no lag; a sine whose acceleration exceeds
+    the bound is followed late, and with no acceleration bound again without lag."""
+    dt = 0.002
+    t = np.arange(0, 6.0, dt)
+    u_max, accel = np.full(8, 10.0), np.full(8, 60.0)
+    rng = np.random.default_rng(0)
+    noisy = np.cumsum(rng.normal(0.0, 0.05, (len(t), 8)), axis=0)
+    q = limited_follower(noisy, dt, u_max, accel)
+    v = np.diff(q, axis=0, prepend=noisy[:1]) / dt
+    assert np.abs(v).max() <= 10.0 + 1e-9 and np.abs(np.diff(v, axis=0)).max() <= 60.0 * dt + 1e-9
+    assert np.isfinite(q).all()
+
+    def sine(frequency: float) -> np.ndarray:  # amplitude 0.5 rad: peak speed π f, peak acceleration 2 π² f²
+        return np.tile(0.5 * (1.0 - np.cos(2 * np.pi * frequency * t))[:, None], (1, 8))
+
+    slow, fast = sine(0.5), sine(3.0)  # 4.9 and 178 rad/s² at the peak (speed 1.6 and 9.4 rad/s)
+    assert np.abs(limited_follower(slow, dt, u_max, accel) - slow).max() < 1e-3
+    assert lag_ms(slow, limited_follower(slow, dt, u_max, accel), dt, 500) == 0.0
+    assert lag_ms(fast, limited_follower(fast, dt, u_max, accel), dt, 500) >= 20.0
+    assert lag_ms(fast, limited_follower(fast, dt, u_max, None), dt, 500) == 0.0
+
+
 def test_fidelity_is_judged_from_one_second_after_the_person_is_first_perceived() -> None:
     """The robot's move from its home pose to the person's first pose is not imitation: an error
     that only exists before ACQUIRE_S after the first perceived state does not count, one after does."""
@@ -396,18 +420,19 @@ def test_fidelity_is_judged_from_one_second_after_the_person_is_first_perceived(
     free, directions = np.ones(n, bool), np.full((n, 4), 10.0)
     directions[:start] = 170.0
     result = fidelity(q_true, q_sim, free, directions, np.full((n, 4), 4.0), perceived, dt, 0.06, q_nom=q_true,
-                      q_cbf=q_sim, directions_seen_late=np.full((n, 4), 7.0))
+                      q_cbf=q_sim, directions_seen_late=np.full((n, 4), 7.0), q_limits_floor=q_true)
     assert result["rms_true"] == 0.0 and result["rms_true_free"] == 0.0 and result["lag_ms"] == 0.0
     assert result["direction_error_deg_p95"] == 10.0 and result["direction_error_deg_p95_at_target"] == 4.0
     assert result["direction_error_deg_p95_latency_floor"] == 7.0
     assert result["judged_from_s"] == pytest.approx(start * dt)
     q_sim[start + 10] += 1.0  # one step off inside the window counts
     assert fidelity(q_true, q_sim, free, directions, directions, perceived, dt, 0.06, q_nom=q_true, q_cbf=q_sim,
-                    directions_seen_late=directions)["rms_true"] > 0.0
+                    directions_seen_late=directions, q_limits_floor=q_true)["rms_true"] > 0.0
     never = fidelity(q_true, q_sim, free, directions, directions, np.zeros(n, bool), dt, 0.06, q_nom=q_true, q_cbf=q_sim,
-                     directions_seen_late=directions)
+                     directions_seen_late=directions, q_limits_floor=q_true)
     assert never["rms_true"] is None and never["judged_from_s"] is None and never["lag_ms"] is None
     assert never["lag_ms_target"] is never["lag_ms_command"] is never["lag_ms_servo"] is None
+    assert never["lag_ms_limits_floor"] is None
 
 
 def test_fidelity_waits_for_a_person_who_walks_into_view_late(tmp_path: Path) -> None:
@@ -452,18 +477,20 @@ def test_a_robot_exactly_one_latency_late_scores_the_latency_floor() -> None:
     q_true = np.tile(amplitude * np.sin(omega * t)[:, None], (1, 8))
     perceived, free, directions = np.ones(n, bool), np.ones(n, bool), np.full((n, 4), 5.0)
     late = fidelity(q_true, delayed(q_true, 30), free, directions, directions, perceived, dt, latency,
-                    q_nom=delayed(q_true, 20), q_cbf=delayed(q_true, 27), directions_seen_late=directions)
+                    q_nom=delayed(q_true, 20), q_cbf=delayed(q_true, 27), directions_seen_late=directions,
+                    q_limits_floor=delayed(q_true, 35))
     expected = amplitude * np.sqrt(2) * abs(np.sin(omega * latency / 2))
     assert late["rms_true_free_latency_floor"] == pytest.approx(expected, rel=0.01)
     assert late["rms_true_free"] == pytest.approx(late["rms_true_free_latency_floor"], abs=1e-6)
     assert late["lag_ms"] == pytest.approx(1e3 * latency)
     # the stages: target 20 steps behind the truth, command 7 behind it, servos 3 behind that
     assert (late["lag_ms_target"], late["lag_ms_command"], late["lag_ms_servo"]) == pytest.approx((40.0, 14.0, 6.0))
+    assert late["lag_ms_limits_floor"] == pytest.approx(70.0)
     later = fidelity(q_true, delayed(q_true, 50), free, directions, directions, perceived, dt, latency,
-                     q_nom=q_true, q_cbf=q_true, directions_seen_late=directions)
+                     q_nom=q_true, q_cbf=q_true, directions_seen_late=directions, q_limits_floor=q_true)
     assert later["rms_true_free"] > later["rms_true_free_latency_floor"]
     free_of_motion = fidelity(q_true, q_true, free, directions, directions, perceived, dt, 0.0, q_nom=q_true, q_cbf=q_true,
-                              directions_seen_late=directions)
+                              directions_seen_late=directions, q_limits_floor=q_true)
     assert free_of_motion["rms_true_free"] == free_of_motion["rms_true_free_latency_floor"] == 0.0
 
 
@@ -532,10 +559,12 @@ def test_evaluation_reports_the_truth_keys(tmp_path: Path) -> None:
                                       "direction_error_deg_p95_at_target", "judged_from_s",
                                       "rms_true_free_latency_floor", "lag_ms_target", "lag_ms_command",
                                       "lag_ms_servo", "direction_error_deg_p50_latency_floor",
-                                      "direction_error_deg_p95_latency_floor"}
+                                      "direction_error_deg_p95_latency_floor", "lag_ms_limits_floor"}
         assert m["fidelity"]["lag_ms"] is not None and m["fidelity"]["lag_ms"] > 0
         # the target alone trails the true person by the camera latency (60 ms) and the point filter
         assert m["fidelity"]["lag_ms_target"] >= 60.0 and m["fidelity"]["lag_ms_servo"] is not None
+        # no robot follows the target seen 60 ms late with less lag than the latency (±1 step)
+        assert m["fidelity"]["lag_ms_limits_floor"] >= 58.0
         assert m["true_contacts_fixed_bodies"] == 0  # beside the robot: only the arms meet
     assert metrics["nominal"]["true_contacts_robot_human"] > metrics["cbf"]["true_contacts_robot_human"]
     assert metrics["nominal"]["robot_caused_contact_steps_commanded"] > 0  # without the CBF the command drives in

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from safemimic.evaluate.episode import Episode, run_episode
-from safemimic.evaluate.metrics import free_steps, input_metrics, run_metrics, target_directions, write_metrics
+from safemimic.evaluate.metrics import (free_steps, input_metrics, limits_floor_joints, run_metrics, target_directions,
+                                        write_metrics)
 from safemimic.evaluate.person import CameraModel, HumanTrack, TruePerson, perceive, true_person
 from safemimic.evaluate.source import EvaluationInput, open_input
 from services.safety.assembly import make_retargeter
@@ -45,11 +46,12 @@ class Evaluation:
         phi, mirror = self.conf.safety.phi, self.conf.retargeting.mirror
         latency = self.camera.latency_s
         at_target = target_directions(self.person, mirror, latency)
+        limits_floor = limits_floor_joints(self.person, self.conf.safety, latency)
         return {
             "cbf": run_metrics(self.cbf, free, self.person, phi, mirror, at_target, latency,
-                               self.human.in_view(self.cbf.human)),
+                               self.human.in_view(self.cbf.human), limits_floor),
             "nominal": run_metrics(self.nominal, free, self.person, phi, mirror, at_target, latency,
-                                   self.human.in_view(self.nominal.human)),
+                                   self.human.in_view(self.nominal.human), limits_floor),
             "input": input_metrics(self.conf, self.source, self.human, self.cbf, self.placement, self.camera),
         }
 

@@ -38,6 +38,12 @@ its home pose to the person's first pose, which says nothing of how it follows a
   at ``q_true(t − L)``, L the camera latency, against the person at t, over the same samples: the
   retargeting's error and the latency's together, what a robot exactly at the target it was last
   shown scores (the directions' counterpart of ``rms_true_free_latency_floor``);
+- ``lag_ms_limits_floor``: the lag of a robot that sees the true target one latency late, perfectly
+  (no point filter, its exact rate) and follows it as fast as its bounds allow
+  (:func:`limited_follower`: the joint speed bound ``safety.u_max``, the acceleration bound
+  ``safety.accel_max``; no safety row): where the person moves faster than the robot can
+  accelerate, this already exceeds the latency, and a lag goal below it is met by no controller
+  within those bounds;
 - ``judged_from_s``: where the judged steps begin (s; null: the person was never perceived).
 """
 
@@ -74,6 +80,34 @@ def best_delay(reference: np.ndarray, follower: np.ndarray, dt: float, start: in
     target = follower[first: n - lead]
     errors = [np.mean((target - reference[first - d: n - lead - d]) ** 2) for d in range(-lead, lag + 1)]
     return (int(np.argmin(errors)) - lead) * dt
+
+
+def limited_follower(reference: np.ndarray, dt: float, u_max: np.ndarray, accel_max: np.ndarray | None) -> np.ndarray:
+    """The joints (N, n) rad of a robot that follows ``reference`` (N, n) rad, sampled every ``dt`` s,
+    as closely as its speed bound ``u_max`` (n,) rad/s and acceleration bound ``accel_max`` (n,)
+    rad/s² (None: unbounded) allow, starting at rest on ``reference[0]``.
+
+    At each step k, from q_k, it takes the velocity nearest to
+    v* = ṙ_k + sign(e) min(√(2 a |e|), |e|/Δt), e = r_k − q_k, ṙ_k = (r_{k+1} − r_k)/Δt (the reference's
+    own rate; the fastest approach from which it still brakes onto the reference at a, and no further
+    than the error in one step) within |v| ≤ u_max and |v − v_prev| ≤ a Δt, then q_{k+1} = q_k + v Δt.
+    A near time-optimal tracker of the reference within the bounds (up to a chatter of a Δt² rad),
+    not a controller the stack runs: the bounds' own share of the lag.
+    """
+    reference = np.asarray(reference, dtype=np.float64)
+    u_max = np.asarray(u_max, dtype=np.float64)
+    accel = None if accel_max is None else np.asarray(accel_max, dtype=np.float64)
+    rate = np.diff(reference, axis=0, append=reference[-1:]) / dt
+    q, v = reference[0].copy(), np.zeros_like(u_max)
+    out = np.empty_like(reference)
+    for k in range(len(reference)):
+        out[k] = q
+        e = reference[k] - q
+        closing = np.abs(e) / dt if accel is None else np.minimum(np.sqrt(2.0 * accel * np.abs(e)), np.abs(e) / dt)
+        v_next = np.clip(rate[k] + np.sign(e) * closing, -u_max, u_max)
+        v = v_next if accel is None else np.clip(v_next, v - accel * dt, v + accel * dt)
+        q = q + v * dt
+    return out
 
 
 def lag_ms(q_true: np.ndarray, q_sim: np.ndarray, dt: float, start: int = 0) -> float | None:
@@ -116,18 +150,19 @@ def delayed(q: np.ndarray, steps: int) -> np.ndarray:
 def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions: np.ndarray,
              directions_at_target: np.ndarray, perceived: np.ndarray, dt: float,
              latency_s: float, *, q_nom: np.ndarray, q_cbf: np.ndarray,
-             directions_seen_late: np.ndarray) -> dict[str, float | None]:
+             directions_seen_late: np.ndarray, q_limits_floor: np.ndarray) -> dict[str, float | None]:
     """The ``fidelity`` object of one run (module docstring): ``q_true``/``q_sim`` (N, 8) rad,
     ``free`` (N,) the free steps, ``directions``/``directions_at_target``/``directions_seen_late``
     (N, 4) deg from :func:`direction_errors` at q_sim / at q_true / at q_true one latency late,
     ``perceived`` (N,) the perceived state in force shows the person, ``latency_s`` the camera
     latency (s), ``q_nom``/``q_cbf`` (N, 8) rad the run's target and safe command (the stages of
-    the lag)."""
+    the lag), ``q_limits_floor`` (N, 8) rad :func:`limited_follower` of q_true seen one latency late."""
     start = judged_from(perceived, dt)
     first = len(q_true) if start is None else min(start, len(q_true))
     lag = lag_ms(q_true, q_sim, dt, first)
     chain = (q_true, q_nom, q_cbf, q_sim)
     stages = {f"lag_ms_{stage}": lag_ms(chain[i], chain[i + 1], dt, first) for i, stage in enumerate(LAG_STAGES)}
+    limits_floor = lag_ms(q_true, q_limits_floor, dt, first)
     judged = slice(first, None)
     late = delayed(q_true, round(latency_s / dt))[judged]
     q_true, q_sim, free = q_true[judged], q_sim[judged], free[judged]
@@ -154,5 +189,6 @@ def fidelity(q_true: np.ndarray, q_sim: np.ndarray, free: np.ndarray, directions
         "direction_error_deg_p95_at_target": percentile(at_target, 95),
         "direction_error_deg_p50_latency_floor": percentile(seen_late, 50),
         "direction_error_deg_p95_latency_floor": percentile(seen_late, 95),
+        "lag_ms_limits_floor": limits_floor,
         "judged_from_s": None if start is None else round(start * dt, 6),
     }

@@ -9,7 +9,8 @@ met there by any command, so the run says nothing about the controller.
 Safety (a person faster than the robot), with the CBF, in every run: no robot–robot contact, the
 self barrier ≥ −1 mm, no robot-caused contact step, no approach step, true contacts at most 10 % of
 the run without the CBF (0 where that run has none; floor: the steps with the person inside a
-body no imitation joint moves), no NaN. Imitation: lag ≤ latency + 20 ms, ``rms_true_free`` ≤
+body no imitation joint moves), no NaN. Imitation: lag ≤ latency + 20 ms (floor: the lag of a robot following the target seen one
+latency late as fast as its speed and acceleration bounds allow), ``rms_true_free`` ≤
 0.05 rad (floor: the latency floor), arm direction p95 ≤ 15° (floor: the same at the target, the
 retargeting's own error, or at the target seen one latency late: that error and the latency's).
 """
@@ -62,7 +63,8 @@ GOALS: tuple[Goal, ...] = (
          lambda r: _contact_share(r, r["cbf"]["true_contacts_robot_human"]),
          lambda r: not _contact_share(r, r["cbf"]["true_contacts_fixed_bodies"])),
     Goal("no NaN", lambda r: r["cbf"]["nan_count"] == 0),
-    Goal("lag ≤ latency + 20 ms", lambda r: _at_most(_fidelity(r, "lag_ms"), r["input"]["latency_ms"] + 20.0)),
+    Goal("lag ≤ latency + 20 ms", lambda r: _at_most(_fidelity(r, "lag_ms"), r["input"]["latency_ms"] + 20.0),
+         lambda r: _at_most(_fidelity(r, "lag_ms_limits_floor"), r["input"]["latency_ms"] + 20.0) is False),
     Goal("rms_true_free ≤ 0.05 rad", lambda r: _at_most(_fidelity(r, "rms_true_free"), 0.05),
          lambda r: _at_most(_fidelity(r, "rms_true_free_latency_floor"), 0.05) is False),
     Goal("arm direction p95 ≤ 15°", lambda r: _at_most(_fidelity(r, "direction_error_deg_p95"), 15.0),
@@ -102,8 +104,9 @@ def goals_markdown(report: list[dict[str, Any]]) -> list[str]:
     lines = [
         "## Goals", "",
         "With the CBF, in every run. *beyond the floor*: failing runs where the evaluator's own floor already "
-        "misses the goal (the person inside the pelvis or legs; the target seen one latency late; the "
-        "retargeting's error at the target), which no command to the imitation joints can meet.", "",
+        "misses the goal (the person inside the pelvis or legs; the target seen one latency late; the robot's "
+        "speed and acceleration bounds; the retargeting's error at the target), which no command to the imitation "
+        "joints can meet.", "",
         "| goal | runs met | failed | of them beyond the floor | not judged | failing runs |",
         "|---|---|---|---|---|---|",
     ]

@@ -76,11 +76,11 @@ from typing import Any
 import numpy as np
 
 from safemimic.evaluate.episode import MODES, Episode
-from safemimic.evaluate.fidelity import delayed, direction_errors, fidelity
+from safemimic.evaluate.fidelity import delayed, direction_errors, fidelity, limited_follower
 from safemimic.evaluate.person import CameraModel, HumanTrack, TruePerson
 from safemimic.evaluate.source import EvaluationInput
 from safemimic.evaluate.truth import CLOSING_SPEED
-from shared.config import IntrusionResponse, PointFilterKind, RetargetMethod, StackConfig, TargetPath
+from shared.config import IntrusionResponse, PointFilterKind, RetargetMethod, SafetyConfig, StackConfig, TargetPath
 from shared.messages import SafetyMode
 
 RUN_KEYS: tuple[str, ...] = (
@@ -151,14 +151,16 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
 
 
 def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, mirror: bool,
-                target: tuple[np.ndarray, np.ndarray], latency_s: float, in_view: np.ndarray) -> dict[str, Any]:
+                target: tuple[np.ndarray, np.ndarray], latency_s: float, in_view: np.ndarray,
+                q_limits_floor: np.ndarray) -> dict[str, Any]:
     """The :data:`RUN_KEYS` of one run; ``free``: the steps counted by the ``*_free`` keys;
     ``person``: the true person; ``phi``: the safety margin (m); ``mirror``: facing the person;
     ``latency_s``: the camera latency (s) of the fidelity floor; ``in_view`` (N,): the perceived
     state in force shows the person (:meth:`HumanTrack.in_view`; fidelity is judged from 1 s after
     the first such step);
     ``target``: :func:`direction_errors` of the robot placed at q_true and at q_true one latency
-    late (the same for every run of one input: :func:`target_directions`)."""
+    late (the same for every run of one input: :func:`target_directions`); ``q_limits_floor``:
+    :func:`limits_floor_joints` (the same for every run of one input)."""
     is_self = ep.pairs.is_self
     error = ep.q_cbf - ep.q_nom
     negative = np.nan_to_num(ep.h, nan=np.inf) < 0.0
@@ -186,7 +188,7 @@ def run_metrics(ep: Episode, free: np.ndarray, person: TruePerson, phi: float, m
         "fidelity": fidelity(person.q_true, ep.q_sim, free,
                              direction_errors(person.keypoints, person.valid, ep.robot_capsules, mirror),
                              target[0], in_view, _step(ep.t), latency_s, q_nom=ep.q_nom, q_cbf=ep.q_cbf,
-                             directions_seen_late=target[1]),
+                             directions_seen_late=target[1], q_limits_floor=q_limits_floor),
     }
     assert tuple(metrics) == RUN_KEYS
     return metrics
@@ -203,6 +205,15 @@ def target_directions(person: TruePerson, mirror: bool, latency_s: float) -> tup
     late = delayed(person.robot_at_target, round(latency_s / _step(person.t)))
     return (direction_errors(person.keypoints, person.valid, person.robot_at_target, mirror),
             direction_errors(person.keypoints, person.valid, late, mirror))
+
+
+def limits_floor_joints(person: TruePerson, safety: SafetyConfig, latency_s: float) -> np.ndarray:
+    """(N, 8) rad: :func:`limited_follower` of the true person's q_true seen one camera latency
+    ``latency_s`` late, within ``safety.u_max`` and ``safety.accel_max`` (the lag's limits floor; the
+    same for every run of one input)."""
+    dt = _step(person.t)
+    accel = None if safety.accel_max is None else np.asarray(safety.accel_max, dtype=np.float64)
+    return limited_follower(delayed(person.q_true, round(latency_s / dt)), dt, np.asarray(safety.u_max, dtype=np.float64), accel)
 
 
 def input_metrics(
