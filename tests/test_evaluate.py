@@ -275,8 +275,9 @@ def test_suite_over_the_development_clips_writes_one_row_per_clip_and_placement(
     assert "**failed:**" in table and "robot-caused" in table
     fidelity = rows[(clips[0].stem, "side-by-side")]["cbf"]["fidelity"]
     cell = [("—" if fidelity[key] is None else f"{fidelity[key]:.0f}")
-            for key in ("lag_ms", "lag_ms_target", "lag_ms_command", "lag_ms_servo")]
-    assert f"| {cell[0]} ({cell[1]} / {cell[2]} / {cell[3]}) |" in table  # the lag, and where it comes from
+            for key in ("lag_ms", "lag_ms_target", "lag_ms_command", "lag_ms_servo", "lag_ms_limits_floor")]
+    # the lag, where it comes from, and its limits floor
+    assert f"| {cell[0]} ({cell[1]} / {cell[2]} / {cell[3]}) / {cell[4]} |" in table
     walk = rows[("bandai1_slash_sword", "facing")]["cbf"]  # a person walking through the robot: it stops
     step_s = 1.0 / load_config(environ={}).safety.rate_hz
     assert walk["protective_stop_steps"] > 0
