@@ -42,14 +42,18 @@ def _shade_binding(ax, ep: Episode) -> None:
         ax.axvspan(ep.t[start], ep.t[stop - 1] + dt, color=BINDING_COLOR, lw=0, zorder=0)
 
 
-def plot_joints(cbf: Episode, nominal: Episode, person: TruePerson, joint_names: tuple[str, ...], path: Path,
-                title: str) -> Path:
-    """Write ``joints.png``: q_true, q_nom, q without and with the CBF layer for each joint (rad)."""
+def plot_joints(cbf: Episode, nominal: Episode, person: TruePerson, limits_floor: np.ndarray,
+                joint_names: tuple[str, ...], path: Path, title: str) -> Path:
+    """Write ``joints.png``: q_true, q_nom, q without and with the CBF layer for each joint (rad), and
+    ``limits_floor`` (N, 8) rad, the robot following q_true seen one latency late within its bounds
+    (:func:`~safemimic.evaluate.metrics.limits_floor_joints`: the best it could do)."""
     fig, axes = plt.subplots(4, 2, figsize=(11, 8.5), sharex=True, constrained_layout=True)
     for j, (ax, name) in enumerate(zip(axes.T.flat, joint_names)):
         _shade_binding(ax, cbf)
         ax.plot(person.t, person.q_true[:, j], color=TRUE_COLOR, lw=1.0, label="q_true (the person, retargeted)")
         ax.plot(cbf.t, cbf.q_nom[:, j], color=NOMINAL_COLOR, lw=1.0, label="q_nom (perceived)")
+        ax.plot(person.t, limits_floor[:, j], color=TRUE_COLOR, lw=0.8, ls=":",
+                label="q_true seen late, within the speed and acceleration bounds (floor)")
         ax.plot(nominal.t, nominal.q_sim[:, j], color=UNSAFE_COLOR, lw=1.3, ls="--", label="without CBF", zorder=3)
         ax.plot(cbf.t, cbf.q_sim[:, j], color=SAFE_COLOR, lw=1.5, label="with CBF (simulated)")
         ax.set_title(name.removesuffix("_joint").replace("_", " "), fontsize=9)
@@ -61,7 +65,7 @@ def plot_joints(cbf: Episode, nominal: Episode, person: TruePerson, joint_names:
     handles, labels = axes[0, 0].get_legend_handles_labels()
     handles.append(plt.Rectangle((0, 0), 1, 1, color=BINDING_COLOR))
     labels.append("a CBF constraint binds")
-    fig.legend(handles, labels, loc="outside lower center", ncol=5, fontsize=9)
+    fig.legend(handles, labels, loc="outside lower center", ncol=3, fontsize=9)
     fig.suptitle(f"Joint trajectories, nominal vs safe — {title}", fontsize=11)
     fig.savefig(path, dpi=_DPI)
     plt.close(fig)
