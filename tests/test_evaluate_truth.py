@@ -554,6 +554,7 @@ def test_evaluation_reports_the_truth_keys(tmp_path: Path) -> None:
         for steps, mm in (("robot_caused_contact_steps", "robot_caused_contact_mm"),
                           ("robot_approach_steps", "robot_approach_mm")):
             assert (m[mm] > 0) == (m[steps] > 0), m  # every counted step closes > 1 mm/s for 2 ms
+        assert 0 <= m["torque_saturated_steps"] <= metrics["input"]["control_steps"]
         assert set(m["fidelity"]) == {"lag_ms", "rms_true", "rms_true_free", "direction_error_deg_p50",
                                       "direction_error_deg_p95", "direction_error_deg_p50_at_target",
                                       "direction_error_deg_p95_at_target", "judged_from_s",

@@ -86,6 +86,23 @@ def test_step_command_is_followed_within_half_a_second(sim: SimRobot) -> None:
     assert sim.contacts().empty
 
 
+def test_a_motor_asked_for_more_than_its_torque_is_saturated(sim: SimRobot) -> None:
+    """At rest at home no motor is at its limit; a 0.5 rad step on the left shoulder pitch asks its
+    servo for kp · 0.5 rad, beyond the G1's 25 N·m, so that motor (and no other) gives its whole
+    torque until the joint has come most of the way."""
+    np.testing.assert_allclose(sim.torque_limit, [50, 50, 25, 25, 25, 25, 25, 25])
+    sim.set_command(sim.q_home)
+    sim.step(50)
+    assert not sim.saturated.any()
+    target = sim.q_home.copy()
+    target[2] -= 0.5
+    sim.set_command(target)
+    sim.step(1)
+    assert sim.saturated[2] and sim.saturated.sum() == 1, sim.saturated
+    sim.step(round(0.5 / sim.timestep))
+    assert not sim.saturated.any()
+
+
 def test_velocity_feed_forward_reduces_tracking_lag(sim: SimRobot) -> None:
     """A ramp at 1 rad/s on the left elbow: with its velocity fed forward the lag nearly vanishes."""
     lags = []

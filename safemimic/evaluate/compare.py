@@ -15,13 +15,14 @@ standard output; ``--out`` also writes it):
   target path, the intrusion policy, the retargeting method, the point filter) that differ;
 - the figures over the CBF runs both evaluated (:data:`METRICS`: true contacts, robot-caused and
   approach steps with their commanded share, robot–robot contacts, the worst min self h at the
-  simulated joints, NaN and hold steps, the median lag, ``rms_true_free`` summed), before → after;
+  simulated joints, NaN, hold and motor-saturated steps, the median lag, ``rms_true_free`` summed),
+  before → after;
 - the goals (:func:`~safemimic.evaluate.goals.goal_report`): runs that meet each, before → after;
 - one row per run whose figures changed (every run with ``--all``), a safety figure that got worse
   in **bold**.
 
 A safety figure is worse when it grows (contacts, robot-caused or approach steps, robot–robot
-contacts, NaN, hold steps) or, for min self h, falls; the fidelity figures (lag, RMS) are shown,
+contacts, NaN, hold steps, steps with a motor at its torque limit) or, for min self h, falls; the fidelity figures (lag, RMS) are shown,
 never judged. Exit status 0; 1 with ``--fail-on-worse`` when some run's safety figure got worse (a
 CI gate on a change); 2 for unusable input.
 """
@@ -94,6 +95,7 @@ METRICS: tuple[Metric, ...] = (
     Metric("min self h (mm)", _cbf("true_min_h_self"), min, "worst", -1, ".1f", 1e3),
     Metric("NaN", _cbf("nan_count"), sum, "sum", +1),
     Metric("hold steps", _cbf("hold_steps"), sum, "sum", +1),
+    Metric("motor-saturated steps", _cbf("torque_saturated_steps"), sum, "sum", +1),
     Metric("lag (ms)", _fidelity("lag_ms"), statistics.median, "median", 0, ".1f"),
     Metric("rms_true_free (rad)", _fidelity("rms_true_free"), sum, "sum", 0, ".3f"),
 )
@@ -241,7 +243,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.description = (
         "Two evaluation suites side by side, before → after a change: their CBF runs together (true "
-        "contacts, robot-caused and approach steps, robot–robot contacts, min self h, NaN, hold steps, lag, "
+        "contacts, robot-caused and approach steps, robot–robot contacts, min self h, NaN, hold steps, steps with a "
+        "motor at its torque limit, lag, "
         "rms_true_free), the project's goals met, and the runs whose figures changed. Runs are matched by clip "
         "and placement; evaluate both on the same inputs (the report warns where their settings differ).\n\n"
         "  safemimic evaluate --suite clips/ --out before\n"

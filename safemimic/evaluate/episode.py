@@ -80,6 +80,9 @@ class Episode:
     closes faster than that too (at the robot's pose), ``closing_speed`` (N,) m/s the fastest
     closing of a touching pair (0: none), ``fixed_contact`` (N,) some touching robot body is one no imitation
     joint moves (:func:`~safemimic.evaluate.truth.fixed_bodies`: no controller avoids it);
+    ``torque_saturated`` (N,) some imitation joint's motor gave its whole torque at the step's last
+    physics step (:attr:`~services.executor.mujoco.sim.SimRobot.saturated`: the servo asked for more than
+    the motor has);
     ``contact_steps`` (N, 3) robot–robot, robot–perceived person and
     robot–true person contacts after the step; ``tally``/``true_tally`` the contacts per pair
     (robot–robot with the perceived person / the true person's robot–human ones).
@@ -113,6 +116,7 @@ class Episode:
     robot_caused_commanded: np.ndarray
     closing_speed: np.ndarray
     fixed_contact: np.ndarray
+    torque_saturated: np.ndarray
     contact_steps: np.ndarray
     tally: ContactTally
     true_tally: ContactTally
@@ -149,6 +153,7 @@ def _empty_episode(enforce: bool, n: int, safety: SafetyPipeline, truth: TruthPr
         true_clearance=np.empty((n, mt)), true_rate=np.empty((n, mt)), true_rate_commanded=np.empty((n, mt)),
         true_contact=np.zeros(n, bool), true_depth=np.zeros(n), robot_caused=np.zeros(n, bool),
         robot_caused_commanded=np.zeros(n, bool), closing_speed=np.zeros(n), fixed_contact=np.zeros(n, bool),
+        torque_saturated=np.zeros(n, bool),
         contact_steps=np.zeros((n, 3), np.int64),
         tally=ContactTally(), true_tally=ContactTally(), home_contacts=home_contacts,
         pairs=safety.pairs, truth_is_self=truth.is_self,
@@ -246,6 +251,7 @@ def run_episode(
         ep.tally.update(report)
         ep.true_tally.update(true_report)
         ep.q_sim[k], ep.dq_sim[k], ep.qpos[k] = sim.q, sim.dq, sim.data.qpos
+        ep.torque_saturated[k] = sim.saturated.any()
         step = truth.measure(ep.q_sim[k], ep.dq_sim[k], person.capsules[k], person.radii, person.capsule_valid[k],
                              result.u)
         ep.true_clearance[k], ep.true_rate[k], ep.robot_capsules[k] = step.clearance, step.rate, step.robot

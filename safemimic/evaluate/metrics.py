@@ -60,6 +60,11 @@ person, every pair, every robot surface):
 - ``robot_caused_contact_mm`` / ``robot_approach_mm``: how far the robot closed in over those
   steps, Σ_k Δt · (the fastest closing speed of a touching / an approached pair at step k), mm:
   the size of what the step counts count;
+- ``torque_saturated_steps``: steps at which some imitation joint's simulated motor gave its whole
+  torque (the joint's ``actuatorfrcrange``: the G1's 25 N·m at the arms, 50 at the waist): its
+  servo asked for more (its error, the torque feed-forward of the commanded acceleration with the
+  other joints' reactions, gravity) than the motor has, so the joint did not move as commanded and
+  the robot left the path its barriers were computed for;
 - ``fidelity``: lag, RMS and arm-direction error against the true person
   (:mod:`safemimic.evaluate.fidelity`).
 
@@ -91,7 +96,7 @@ RUN_KEYS: tuple[str, ...] = (
     "true_max_depth_human",
     "robot_caused_contact_steps", "person_caused_contact_steps", "robot_approach_steps",
     "robot_caused_contact_steps_commanded", "robot_approach_steps_commanded", "robot_caused_contact_mm",
-    "robot_approach_mm", "fidelity",
+    "robot_approach_mm", "torque_saturated_steps", "fidelity",
 )
 #: The wall-clock keys of a run (excluded when two evaluations are compared for determinism).
 TIMING_KEYS: tuple[str, ...] = ("qp_ms_p50", "qp_ms_p99")
@@ -123,7 +128,7 @@ def _nanmin(values: np.ndarray) -> float | None:
 
 
 def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
-    """The ``true_*`` and contact-cause keys of one run (``phi``: the safety margin φ, m)."""
+    """The ``true_*``, contact-cause and motor-saturation keys of one run (``phi``: the safety margin φ, m)."""
     is_self = ep.truth_is_self
     dt = float(ep.t[1] - ep.t[0]) if len(ep.t) > 1 else 0.0
     human_clearance = ep.true_clearance[:, ~is_self]
@@ -147,6 +152,7 @@ def truth_metrics(ep: Episode, phi: float) -> dict[str, Any]:
         "robot_approach_steps_commanded": int(np.count_nonzero((approach & commanded).any(axis=1))),
         "robot_caused_contact_mm": _millimetres(ep.closing_speed[ep.robot_caused].sum() * dt),
         "robot_approach_mm": _millimetres(approach_speed.sum() * dt),
+        "torque_saturated_steps": int(np.count_nonzero(ep.torque_saturated)),
     }
 
 

@@ -92,6 +92,9 @@ class SimRobot:
         self._held_dof = m.jnt_dofadr[m.actuator_trnid[self._held, 0]]
         self._held_inv_kp = 1.0 / m.actuator_gainprm[self._held, 0]
         self._friction = m.dof_frictionloss[self._dadr].copy()  # Coulomb friction of the imitation joints (N·m)
+        #: The imitation joints' motor torque limits (N·m, the joints' actuatorfrcrange; ∞ where none).
+        self.torque_limit = np.where(m.jnt_actfrclimited[jids].astype(bool), np.abs(m.jnt_actfrcrange[jids]).min(axis=1),
+                                     np.inf)
         self._inertia = np.zeros((m.nv, m.nv))  # the joint-space inertia, dense (mj_fullM)
 
         self._human_geom = np.array([[m.geom(human_body_name(c, p)).id for c in CAPSULE_NAMES] for p in range(self.people)])
@@ -133,6 +136,13 @@ class SimRobot:
     def dq(self) -> np.ndarray:
         """Imitation joint velocities (rad/s), ``joint_names`` order (a copy)."""
         return self.data.qvel[self._dadr].copy()
+
+    @property
+    def saturated(self) -> np.ndarray:
+        """(n,) bool: the imitation joints whose motor gave its whole torque (:attr:`torque_limit`) at
+        the last physics step: the servo asked for more (its error, the feed-forward, gravity) than the
+        motor has, so the joint did not move as commanded."""
+        return np.abs(self.data.qfrc_actuator[self._dadr]) >= self.torque_limit * (1.0 - 1e-9)
 
     # ------------------------------------------------------------------------- inputs
     def set_command(self, q: np.ndarray, dq: np.ndarray | None = None, ddq: np.ndarray | None = None,
