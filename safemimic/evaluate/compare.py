@@ -22,9 +22,9 @@ standard output; ``--out`` also writes it):
   in **bold**.
 
 A safety figure is worse when it grows (contacts, robot-caused or approach steps, robot–robot
-contacts, NaN, hold steps, steps with a motor at its torque limit) or, for min self h, falls; the fidelity figures (lag, RMS) are shown,
-never judged. Exit status 0; 1 with ``--fail-on-worse`` when some run's safety figure got worse (a
-CI gate on a change); 2 for unusable input.
+contacts, NaN, hold steps, steps with a motor at its torque limit) or, for min self h, falls; the
+fidelity figures (lag, RMS) are shown, never judged. Exit status 0; 1 with ``--fail-on-worse``
+when some run's safety figure got worse (a CI gate on a change); 2 for unusable input.
 """
 
 from __future__ import annotations

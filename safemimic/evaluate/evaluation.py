@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -39,13 +40,11 @@ class Evaluation:
     cbf: Episode
     nominal: Episode
     placement: str
-    _limits_floor: np.ndarray | None = field(default=None, init=False, repr=False)
 
+    @cached_property
     def limits_floor(self) -> np.ndarray:
         """(N, 8) rad: the lag's limits floor (:func:`limits_floor_joints`), computed once."""
-        if self._limits_floor is None:
-            self._limits_floor = limits_floor_joints(self.person, self.conf.safety, self.camera.latency_s)
-        return self._limits_floor
+        return limits_floor_joints(self.person, self.conf.safety, self.camera.latency_s)
 
     def metrics(self) -> dict[str, Any]:
         """The content of ``metrics.json``."""
@@ -53,7 +52,7 @@ class Evaluation:
         phi, mirror = self.conf.safety.phi, self.conf.retargeting.mirror
         latency = self.camera.latency_s
         at_target = target_directions(self.person, mirror, latency)
-        limits_floor = self.limits_floor()
+        limits_floor = self.limits_floor
         return {
             "cbf": run_metrics(self.cbf, free, self.person, phi, mirror, at_target, latency,
                                self.human.in_view(self.cbf.human), limits_floor),
@@ -127,7 +126,7 @@ def write_outputs(evaluation: Evaluation, out: Path, rrd: Path | None = None) ->
     }
     (out / "contacts.json").write_text(json.dumps(contacts, indent=2) + "\n")
     title = f"{e.source.name}, placement {e.placement}, robot model {metrics['input']['robot_model']}"
-    plot_joints(e.cbf, e.nominal, e.person, e.limits_floor(), e.kinematics.joint_names, out / "joints.png", title)
+    plot_joints(e.cbf, e.nominal, e.person, e.limits_floor, e.kinematics.joint_names, out / "joints.png", title)
     plot_barriers(e.cbf, e.nominal, e.conf.safety.phi, out / "barriers.png", title, e.conf.safety.human_standoff_m)
     render_snapshot(e.conf, e.kinematics, e.human, e.person, e.cbf, e.nominal, out / "snapshot.png")
     if rrd is not None:

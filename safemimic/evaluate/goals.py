@@ -9,10 +9,11 @@ met there by any command, so the run says nothing about the controller.
 Safety (a person faster than the robot), with the CBF, in every run: no robot–robot contact, the
 self barrier ≥ −1 mm, no robot-caused contact step, no approach step, true contacts at most 10 % of
 the run without the CBF (0 where that run has none; floor: the steps with the person inside a
-body no imitation joint moves), no NaN. Imitation: lag ≤ latency + 20 ms (floor: the lag of a robot following the target seen one
-latency late as fast as its speed and acceleration bounds allow), ``rms_true_free`` ≤
-0.05 rad (floor: the latency floor), arm direction p95 ≤ 15° (floor: the same at the target, the
-retargeting's own error, or at the target seen one latency late: that error and the latency's).
+body no imitation joint moves), no NaN. Imitation: lag ≤ latency + 20 ms (floor: the lag of a
+robot following the target seen one latency late as fast as its speed and acceleration bounds
+allow), ``rms_true_free`` ≤ 0.05 rad (floor: the latency floor), arm direction p95 ≤ 15° (floor:
+the same at the target, the retargeting's own error, or at the target seen one latency late: that
+error and the latency's).
 """
 
 from __future__ import annotations

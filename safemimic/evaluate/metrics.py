@@ -219,7 +219,8 @@ def limits_floor_joints(person: TruePerson, safety: SafetyConfig, latency_s: flo
     same for every run of one input)."""
     dt = _step(person.t)
     accel = None if safety.accel_max is None else np.asarray(safety.accel_max, dtype=np.float64)
-    return limited_follower(delayed(person.q_true, round(latency_s / dt)), dt, np.asarray(safety.u_max, dtype=np.float64), accel)
+    seen_late = delayed(person.q_true, round(latency_s / dt))
+    return limited_follower(seen_late, dt, np.asarray(safety.u_max, dtype=np.float64), accel)
 
 
 def input_metrics(

@@ -93,8 +93,8 @@ class SimRobot:
         self._held_inv_kp = 1.0 / m.actuator_gainprm[self._held, 0]
         self._friction = m.dof_frictionloss[self._dadr].copy()  # Coulomb friction of the imitation joints (N·m)
         #: The imitation joints' motor torque limits (N·m, the joints' actuatorfrcrange; ∞ where none).
-        self.torque_limit = np.where(m.jnt_actfrclimited[jids].astype(bool), np.abs(m.jnt_actfrcrange[jids]).min(axis=1),
-                                     np.inf)
+        limit = np.abs(m.jnt_actfrcrange[jids]).min(axis=1)
+        self.torque_limit = np.where(m.jnt_actfrclimited[jids].astype(bool), limit, np.inf)
         self._inertia = np.zeros((m.nv, m.nv))  # the joint-space inertia, dense (mj_fullM)
 
         self._human_geom = np.array([[m.geom(human_body_name(c, p)).id for c in CAPSULE_NAMES] for p in range(self.people)])
