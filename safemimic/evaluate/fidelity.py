@@ -50,6 +50,7 @@ its home pose to the person's first pose, which says nothing of how it follows a
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from shared.torso_frame import person_arm_directions, robot_arm_directions
 
@@ -82,7 +83,7 @@ def best_delay(reference: np.ndarray, follower: np.ndarray, dt: float, start: in
     return (int(np.argmin(errors)) - lead) * dt
 
 
-def limited_follower(reference: np.ndarray, dt: float, u_max: np.ndarray, accel_max: np.ndarray | None) -> np.ndarray:
+def limited_follower(reference: np.ndarray, dt: float, u_max: ArrayLike, accel_max: ArrayLike | None) -> np.ndarray:
     """The joints (N, n) rad of a robot that follows ``reference`` (N, n) rad, sampled every ``dt`` s,
     as closely as its speed bound ``u_max`` (n,) rad/s and acceleration bound ``accel_max`` (n,)
     rad/s² (None: unbounded) allow, starting at rest on ``reference[0]``.

@@ -218,9 +218,7 @@ def limits_floor_joints(person: TruePerson, safety: SafetyConfig, latency_s: flo
     ``latency_s`` late, within ``safety.u_max`` and ``safety.accel_max`` (the lag's limits floor; the
     same for every run of one input)."""
     dt = _step(person.t)
-    accel = None if safety.accel_max is None else np.asarray(safety.accel_max, dtype=np.float64)
-    seen_late = delayed(person.q_true, round(latency_s / dt))
-    return limited_follower(seen_late, dt, np.asarray(safety.u_max, dtype=np.float64), accel)
+    return limited_follower(delayed(person.q_true, round(latency_s / dt)), dt, safety.u_max, safety.accel_max)
 
 
 def input_metrics(
