@@ -10,11 +10,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 from shared.bus import Bus
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError
 
 SERVICE_NAME = "health"
 
@@ -32,11 +30,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        conf = config_from_args(args)
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return 2
+    conf = config_from_args(args)  # a ConfigError: shared.entrypoint says it, exit 2
     try:
         with Bus(conf.bus, conf.robot_id, SERVICE_NAME) as bus:
             alive = bus.alive_services(args.timeout)

@@ -25,7 +25,8 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--robot-id", metavar="ID", help="robot id in the key expressions safemimic/{robot_id}/...")
     security = group.add_mutually_exclusive_group()
     security.add_argument("--certs", metavar="DIR", help="mutual TLS: DIR holds ca.pem and this service's NAME.pem/NAME.key "
-                          "(safemimic certs); endpoints tls/HOST:PORT, mode client (bus.tls.dir)")
+                          "(safemimic certs; bus.tls.dir); needs --mode client and tls/HOST:PORT endpoints (the secure bus "
+                          "goes through the router, which enforces access control)")
     security.add_argument("--insecure", action="store_true", help="open tcp bus without authentication or access control "
                           "(bus.tls: null): anyone on the network can command the robot; development only")
 

@@ -10,13 +10,14 @@ from __future__ import annotations
 import copy
 import math
 import os
-from collections.abc import Mapping
+import re
+from collections.abc import Callable, Mapping
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from shared.errors import SafemimicError
 from shared.names import CAPSULE_NAMES, IMITATION_JOINT_NAMES
@@ -76,6 +77,31 @@ class TlsConfig(_Section):
         return self
 
 
+#: A Zenoh locator, ``PROTOCOL/ADDRESS[?METADATA][#CONFIG]``.
+_LOCATOR = re.compile(r"(?P<protocol>[a-z][a-z0-9-]*)/(?P<address>[^?#\s]+)(?:\?[^#\s]*)?(?:#\S*)?")
+#: The protocols whose address is ``HOST:PORT`` (an IPv6 host in brackets).
+_HOST_PORT_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
+_HOST_PORT = re.compile(r"(?:\[[0-9A-Za-z:.%]+\]|[^:\[\]/]+):(?P<port>[0-9]{1,5})")
+
+
+def check_endpoint(endpoint: str) -> str:
+    """``endpoint`` if it is a Zenoh endpoint, ``PROTOCOL/ADDRESS`` (``tcp/10.0.0.2:7447``,
+    ``tls/robot.local:7447``, ``tcp/[::1]:7447``; for tcp, udp, tls, quic and ws the address is
+    HOST:PORT, port 0–65535); else ValueError saying what is expected. Checked when the
+    configuration loads, so that a typo is a configuration error and not Zenoh's parse error when
+    the session opens."""
+    locator = _LOCATOR.fullmatch(endpoint)
+    host_port = None if locator is None else _HOST_PORT.fullmatch(locator["address"])
+    if locator is None or (locator["protocol"] in _HOST_PORT_PROTOCOLS
+                           and (host_port is None or int(host_port["port"]) > 65535)):
+        raise ValueError(f"{endpoint!r} is not a Zenoh endpoint: expected PROTOCOL/HOST:PORT, e.g. "
+                         "tcp/10.0.0.2:7447 or tls/robot.local:7447")
+    return endpoint
+
+
+Endpoint = Annotated[str, AfterValidator(check_endpoint)]
+
+
 class BusConfig(_Section):
     """Zenoh session settings (architecture §1, §11).
 
@@ -87,8 +113,8 @@ class BusConfig(_Section):
     """
 
     mode: BusMode = BusMode.PEER
-    connect: list[str] = Field(default_factory=list)
-    listen: list[str] = Field(default_factory=list)
+    connect: list[Endpoint] = Field(default_factory=list)
+    listen: list[Endpoint] = Field(default_factory=list)
     multicast_scouting: bool = True
     max_message_bytes: int = Field(default=262144, ge=1024, le=64 * 1024 * 1024)
     lease_ms: int = Field(default=500, ge=100, le=60000)
@@ -689,12 +715,42 @@ class StackConfig(_Section):
     human: HumanConfig = Field(default_factory=HumanConfig)
 
 
-def _format_validation_error(exc: ValidationError, origin: str) -> str:
-    lines = [f"invalid configuration ({origin}):"]
+#: Readable forms of the patterns a text field must match (for errors: the regex says little).
+_PATTERN_HINTS = {PLACEMENT_PATTERN: "auto, side-by-side, facing, recorded or x,y,yaw (m, m, rad)"}
+
+#: Where a bad field's value came from, by its location in the data (for errors).
+Source = Callable[[tuple[str | int, ...]], str]
+
+
+def _format_validation_error(exc: ValidationError, origin: str, source: Source | None = None) -> str:
+    """One line per bad field: its dotted name, where its value came from (``source``; else the
+    header's ``origin``), what is wrong and the value given."""
+    lines = [f"invalid configuration ({origin}):" if source is None else "invalid configuration:"]
     for err in exc.errors(include_url=False):
-        field = ".".join(str(p) for p in err["loc"]) or "<root>"
-        lines.append(f"  {field}: {err['msg']} (got {err.get('input')!r:.80})")
+        loc = tuple(err["loc"])
+        field = ".".join(str(p) for p in loc) or "<root>"
+        where = "" if source is None else f" (from {source(loc)})"
+        ctx, given = err.get("ctx") or {}, err.get("input")
+        hint = _PATTERN_HINTS.get(ctx.get("pattern", ""))
+        if err["type"] == "string_pattern_mismatch" and hint:
+            message = f"expected {hint}"
+        elif err["type"] == "value_error":  # a validator's own words, without pydantic's "Value error, "
+            message = str(ctx.get("error", err["msg"]))
+        else:
+            message = err["msg"]
+        got = "" if err["type"] == "value_error" and isinstance(given, Mapping) else f" (got {given!r:.80})"
+        lines.append(f"  {field}{where}: {message}{got}")
     return "\n".join(lines)
+
+
+def _holds(tree: Mapping[str, Any], loc: tuple[str | int, ...]) -> bool:
+    """Whether the nested ``tree`` sets something at or below ``loc`` (a list index ends the walk)."""
+    node: Any = tree
+    for key in loc:
+        if not isinstance(node, Mapping) or key not in node:
+            return isinstance(key, int) and node is not tree
+        node = node[key]
+    return True
 
 
 def env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
@@ -730,12 +786,13 @@ def deep_merge(base: Mapping[str, Any], patch: Mapping[str, Any]) -> dict[str, A
     return merged
 
 
-def validate_config(data: Mapping[str, Any], origin: str = "config") -> StackConfig:
-    """Validate a nested dict into a :class:`StackConfig`; :class:`ConfigError` names bad fields."""
+def validate_config(data: Mapping[str, Any], origin: str = "config", source: Source | None = None) -> StackConfig:
+    """Validate a nested dict into a :class:`StackConfig`; :class:`ConfigError` names the bad fields
+    and where their values came from (``source`` of each field's location; else ``origin``)."""
     try:
         return StackConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_validation_error(exc, origin)) from None
+        raise ConfigError(_format_validation_error(exc, origin, source)) from None
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
@@ -761,13 +818,26 @@ def load_config(
     environ: Mapping[str, str] | None = None,
     overrides: Mapping[str, Any] | None = None,
 ) -> StackConfig:
-    """Load the stack configuration: file, then environment overrides, then ``overrides``."""
+    """Load the stack configuration: file, then environment overrides, then ``overrides`` (the
+    command line's options). A :class:`ConfigError` names each bad field with where its value came
+    from: the command line, the ``SAFEMIMIC__…`` variables that set it, or the file."""
     environ = os.environ if environ is None else environ
     path = Path(path or environ.get(CONFIG_ENV) or DEFAULT_CONFIG_PATH)
-    data = deep_merge(read_yaml(path), env_overrides(environ))
+    from_env = env_overrides(environ)
+    data = deep_merge(read_yaml(path), from_env)
     if overrides:
         data = deep_merge(data, overrides)
-    return validate_config(data, origin=str(path))
+
+    def source(loc: tuple[str | int, ...]) -> str:
+        if overrides and _holds(overrides, loc):
+            return "the command line"
+        if _holds(from_env, loc):
+            named = [key for key in environ if key.startswith(ENV_PREFIX)
+                     and _holds(env_overrides({key: environ[key]}), loc)]
+            return ", ".join(f"${key}" for key in sorted(named))
+        return str(path)
+
+    return validate_config(data, origin=str(path), source=source)
 
 
 def resolve_config_path(relative: str | Path, base: Path = CONFIG_DIR) -> Path:

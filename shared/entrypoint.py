@@ -3,7 +3,10 @@
 ``safemimic COMMAND ...`` (:mod:`safemimic.cli`) and each service's own entry point
 (``python -m services.X ...``, its ``__main__.py``) both come here, so a service runs the same
 way with or without the ``safemimic`` package. A command module provides
-``build_parser(parser) -> parser`` and ``run(args) -> int``.
+``build_parser(parser) -> parser`` and ``run(args) -> int``; a refusal it raises on purpose
+(:class:`~shared.errors.SafemimicError`: an invalid configuration, a missing certificate, a source
+that cannot open, ...) ends the command with its message on one line and exit code 2, never a
+traceback.
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
+
+from shared.errors import SafemimicError
 
 LOG_FORMAT = "%(asctime)s %(name)s %(levelname)s %(message)s"
 
@@ -24,12 +29,17 @@ def run_command(
     argv: Sequence[str],
 ) -> int:
     """Parse ``argv`` with the command's parser (``prog`` ``safemimic NAME``), log at INFO, run it;
-    its exit code. A Zenoh session close that hung (its router went away at the same moment)
-    would keep the process alive: then the output is flushed and the process leaves at once."""
+    its exit code (2 with ``safemimic NAME: message`` on stderr for a :class:`SafemimicError` it
+    raises). A Zenoh session close that hung (its router went away at the same moment) would keep
+    the process alive: then the output is flushed and the process leaves at once."""
     parser = build_parser(argparse.ArgumentParser(prog=f"safemimic {name}"))
     args = parser.parse_args(list(argv))
     logging.basicConfig(level=logging.INFO, format=LOG_FORMAT)
-    code = int(run(args) or 0)
+    try:
+        code = int(run(args) or 0)
+    except SafemimicError as exc:
+        print(f"safemimic {name}: {exc}", file=sys.stderr, flush=True)
+        code = 2
     bus = sys.modules.get("shared.bus")  # imported only by commands that opened a Zenoh session
     if bus is not None and bus.hung_closes():
         sys.stdout.flush()

@@ -228,7 +228,44 @@ def test_bad_value_names_its_field(overrides: dict[str, Any], needle: str) -> No
         load_config(environ={}, overrides=overrides)
     message = str(info.value)
     assert needle in message
-    assert str(DEFAULT_CONFIG_PATH) in message  # and where the configuration came from
+    assert "(from the command line)" in message  # and where the bad value came from
+
+
+def test_each_bad_field_names_where_its_value_came_from(tmp_path: Path) -> None:
+    """The file, the variable that set it, or the command line: not always the file."""
+    path = tmp_path / "site.yaml"
+    path.write_text("safety:\n  phi: 3.0\n")
+    environ = {"SAFEMIMIC__SAFTY__GAMMA": "5", "SAFEMIMIC__BUS__LEASE_MS": "10"}
+    with pytest.raises(ConfigError) as info:
+        load_config(path, environ=environ, overrides={"perception": {"placement": "sideways"}})
+    lines = str(info.value).splitlines()
+    assert lines[0] == "invalid configuration:"
+    assert any(line.startswith(f"  safety.phi (from {path}): ") for line in lines), lines
+    assert any(line.startswith("  safty (from $SAFEMIMIC__SAFTY__GAMMA): ") for line in lines), lines
+    assert any(line.startswith("  bus.lease_ms (from $SAFEMIMIC__BUS__LEASE_MS): ") for line in lines), lines
+    placement = next(line for line in lines if line.startswith("  perception.placement (from the command line): "))
+    assert "expected auto, side-by-side, facing, recorded or x,y,yaw" in placement and "'sideways'" in placement
+    assert "^(?:" not in str(info.value)  # the readable form, not the pattern
+
+
+@pytest.mark.parametrize("endpoint", ["tcp/10.0.0.2:7447", "tls/robot.local:7447", "tcp/[::1]:7447",
+                                      "udp/0.0.0.0:7449", "tcp/127.0.0.1:7447?iface=eth0", "tcp/0.0.0.0:0",
+                                      "unixsock-stream//tmp/safemimic.sock"])
+def test_zenoh_endpoints_are_accepted(endpoint: str) -> None:
+    bus = load_config(environ={}, overrides={"bus": {"connect": [endpoint], "listen": [endpoint]}}).bus
+    assert bus.connect == [endpoint] and bus.listen == [endpoint]
+
+
+@pytest.mark.parametrize("endpoint", ["192.168.1.10:7447", "garbage", "tcp/", "tcp/10.0.0.2", "tcp/10.0.0.2:",
+                                      "tcp/10.0.0.2:65536", "tcp/10.0.0.2:port", "TCP/10.0.0.2:7447",
+                                      "tcp/10.0.0.2:7447 ", "tls/robot local:7447"])
+@pytest.mark.parametrize("field", ["connect", "listen"])
+def test_a_malformed_endpoint_is_a_configuration_error_naming_it(endpoint: str, field: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(environ={}, overrides={"bus": {field: ["tcp/10.0.0.2:7447", endpoint]}})
+    message = str(info.value)
+    assert f"bus.{field}.1 (from the command line): {endpoint!r} is not a Zenoh endpoint" in message, message
+    assert "Value error" not in message
 
 
 def test_non_positive_weight_names_section_and_field() -> None:

@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import os
 import pkgutil
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -74,3 +78,28 @@ def test_safety_domain_errors_are_its_own_type() -> None:
         make_pair_set([("torso", "torso")])
     with pytest.raises(SafetyConfigError, match="unknown QP backend"):
         make_backend("nonsense")
+
+
+# every command: a refusal is one clear message and exit 2, never a traceback ----------------------
+def _safemimic(*argv: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "safemimic.cli", *argv], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "SAFEMIMIC_API_TOKEN": "t" * 32}, cwd=Path(__file__).resolve().parent.parent)
+
+
+@pytest.mark.parametrize("command", ["safety", "perception", "executor", "router", "config-api", "health"])
+def test_an_endpoint_without_its_protocol_is_a_configuration_error_in_every_command(command: str) -> None:
+    done = _safemimic(command, "--insecure", "--connect" if command != "router" else "--listen", "192.168.1.10:7447")
+    assert done.returncode == 2, done
+    assert "Traceback" not in done.stderr, done.stderr
+    assert "'192.168.1.10:7447' is not a Zenoh endpoint" in done.stderr and "tcp/10.0.0.2:7447" in done.stderr
+    assert "(from the command line)" in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("command", ["safety", "perception"])
+def test_a_missing_certificate_stops_a_service_with_one_line(command: str, tmp_path: Path) -> None:
+    """The certificate is read when the bus opens, inside the service: the entry point says it."""
+    done = _safemimic(command, "--certs", str(tmp_path / "nowhere"), "--mode", "client", "--connect",
+                      "tls/127.0.0.1:7447", "--duration", "1")
+    assert done.returncode == 2, done
+    assert "Traceback" not in done.stderr, done.stderr
+    assert f"safemimic {command}: bus.tls: CA certificate" in done.stderr and "does not exist" in done.stderr

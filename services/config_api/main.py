@@ -12,7 +12,6 @@ import argparse
 import json
 import logging
 import os
-import sys
 import threading
 import time
 from collections.abc import Mapping
@@ -24,12 +23,12 @@ import uvicorn
 from services.config_api.app import create_app
 from services.config_api.dependencies import ApiContext
 from services.config_api.link import SERVICE_NAME, BusLink
-from services.config_api.store import ConfigStore, StoreError, default_store_path
-from services.config_api.token import TokenError, resolve_token
+from services.config_api.store import ConfigStore, default_store_path
+from services.config_api.token import resolve_token
 from services.config_api.writer import ConfigWriter
 from shared.bus import Bus
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, StackConfig
+from shared.config import StackConfig
 
 log = logging.getLogger("safemimic.config_api")
 #: Open event streams get this long to finish when the server stops (s).
@@ -94,11 +93,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 def run(args: argparse.Namespace) -> int:
     api: dict[str, Any] = {key: value for key in ("host", "port", "store") if (value := getattr(args, key)) is not None}
-    try:
-        conf = config_from_args(args, {"api": api} if api else None)
-        main(conf)
-    except (ConfigError, StoreError, TokenError) as exc:
-        print(f"config-api: {exc}", file=sys.stderr)
-        return 2
+    # a ConfigError, StoreError or TokenError is shared.entrypoint's to say, exit 2
+    main(config_from_args(args, {"api": api} if api else None))
     return 0
 

@@ -43,13 +43,12 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from services.executor.contacts import ContactTally
-from services.executor.errors import ExecutorStartError
 from services.executor.base import Executor
 from shared.bus import Bus, Latest, Received
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, ExecutorBackend, StackConfig
+from shared.config import ExecutorBackend, StackConfig
 from shared.messages import HumanState, JointCommand, JointState
-from shared.robot_spec import RobotSpecError, configured_robot_spec
+from shared.robot_spec import configured_robot_spec
 from shared.schedule import FixedRateSchedule
 from shared.service import Refusals, ScheduledService, StepErrors, StepTimes
 from shared.stop_signals import stop_on_signals
@@ -301,17 +300,9 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         print("--duration must be > 0", file=sys.stderr)
         return 2
-    try:
-        conf = config_from_args(args, extra)
-    except (ConfigError, RobotSpecError) as exc:
-        print(f"safemimic executor: {exc}", file=sys.stderr)
-        return 2
-    try:
-        with stop_on_signals() as stop:
-            counters = main(conf, stop, args.duration)
-    except (ConfigError, RobotSpecError, ExecutorStartError) as exc:
-        print(f"safemimic executor: {exc}", file=sys.stderr)
-        return 2
+    conf = config_from_args(args, extra)
+    with stop_on_signals() as stop:  # a ConfigError, RobotSpecError, ExecutorStartError: shared.entrypoint, exit 2
+        counters = main(conf, stop, args.duration)
     print(json.dumps({"event": "stopped", "service": SERVICE_NAME, **counters}), flush=True)
     return 0
 

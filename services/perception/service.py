@@ -29,11 +29,11 @@ from pathlib import Path
 from typing import Any
 
 from services.perception.pipeline import PerceptionPipeline
-from services.perception.sources import SourceUnavailable, open_source
+from services.perception.sources import open_source
 from services.perception.base import SkeletonFrame, SkeletonSource
 from shared.bus import Bus, topic_key
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, PerceptionConfig, SkeletonSourceName, StackConfig
+from shared.config import PerceptionConfig, SkeletonSourceName, StackConfig
 from shared.messages import ConfigUpdate
 from shared.service import BusService, Pending, Refusals, StepErrors, validated_update
 from shared.stop_signals import stop_on_signals
@@ -224,16 +224,8 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         print("--duration must be > 0", file=sys.stderr)
         return 2
-    try:
-        conf = config_from_args(args, perception_overrides(args))
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return 2
-    try:
-        with stop_on_signals() as stop:
-            main(conf, stop, args.duration)
-    except SourceUnavailable as exc:
-        print(f"perception: {exc}", file=sys.stderr)
-        return 2
+    conf = config_from_args(args, perception_overrides(args))
+    with stop_on_signals() as stop:  # a ConfigError or SourceUnavailable: shared.entrypoint says it, exit 2
+        main(conf, stop, args.duration)
     return 0
 

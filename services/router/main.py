@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import threading
 
 from shared.bus import close_bounded, open_session
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, StackConfig, deep_merge
+from shared.config import StackConfig, deep_merge
 from shared.stop_signals import stop_on_signals
 
 log = logging.getLogger("safemimic.router")
@@ -53,19 +52,13 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 def run(args: argparse.Namespace) -> int:
     args.mode = "router"
     extra = {"bus": {"tls": {"access_control": args.acl}}} if args.acl else {}
-    try:
-        conf = config_from_args(args, extra)
-        if not args.listen:
-            listen = DEFAULT_SECURE_LISTEN if conf.bus.tls is not None else DEFAULT_LISTEN
-            conf = config_from_args(args, deep_merge(extra, {"bus": {"listen": [listen]}}))
-    except ConfigError as exc:
-        print(exc, file=sys.stderr, flush=True)
-        return 2
+    # a ConfigError (here, or from main: an unusable certificate or access-control file) is
+    # shared.entrypoint's to say, exit 2
+    conf = config_from_args(args, extra)
+    if not args.listen:
+        listen = DEFAULT_SECURE_LISTEN if conf.bus.tls is not None else DEFAULT_LISTEN
+        conf = config_from_args(args, deep_merge(extra, {"bus": {"listen": [listen]}}))
     with stop_on_signals() as stop:
-        try:
-            main(conf, stop)
-        except ConfigError as exc:  # unusable certificate or access-control file
-            print(exc, file=sys.stderr, flush=True)
-            return 2
+        main(conf, stop)
     return 0  # a hung close: safemimic.cli leaves without it
 

@@ -66,7 +66,7 @@ from shared.realtime import realtime
 from shared.schedule import FixedRateSchedule
 from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes, validated_update
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError, RetargetMethod, StackConfig
+from shared.config import RetargetMethod, StackConfig
 from shared.messages import ConfigUpdate, HumanState, JointCommand, JointState, SafetyMode, SafetyStatus
 from shared.stop_signals import stop_on_signals
 
@@ -539,11 +539,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 def run(args: argparse.Namespace) -> int:
     extra: dict[str, Any] = {"safety": {"rate_hz": args.rate}} if args.rate is not None else {}
-    try:
-        conf = config_from_args(args, extra)
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return 2
+    conf = config_from_args(args, extra)  # a ConfigError: shared.entrypoint says it, exit 2
     if args.duration is not None and args.duration <= 0:
         print("--duration must be > 0", file=sys.stderr)
         return 2

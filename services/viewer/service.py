@@ -31,9 +31,8 @@ from pathlib import Path
 
 from shared.bus import Bus, close_bounded
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ConfigError
 from shared.realtime import enter_background
-from shared.robot_spec import RobotSpecError, configured_robot_spec
+from shared.robot_spec import configured_robot_spec
 from shared.stop_signals import stop_on_signals
 
 SERVICE_NAME = "viewer"
@@ -101,15 +100,11 @@ def run(args: argparse.Namespace) -> int:
     import rerun as rr
 
     from services.viewer.live import DECIMATED, LiveScene
-    from services.viewer.robot_mesh import RobotMesh, RobotMeshError
+    from services.viewer.robot_mesh import RobotMesh
 
-    try:
-        conf = config_from_args(args)
-        spec = configured_robot_spec(conf)
-        mesh = RobotMesh(spec)
-    except (ConfigError, RobotSpecError, RobotMeshError) as exc:
-        print(f"safemimic viewer: {exc}", file=sys.stderr)
-        return 2
+    conf = config_from_args(args)  # a ConfigError, RobotSpecError, RobotMeshError: shared.entrypoint, exit 2
+    spec = configured_robot_spec(conf)
+    mesh = RobotMesh(spec)
     radii = mesh.capsule_radii
     for i, name in enumerate(spec.capsules):  # the safety service's overrides (safety.capsule_radii)
         radii[i] = conf.safety.capsule_radii.get(name, radii[i])
