@@ -23,12 +23,15 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 @pytest.fixture
-def spawn() -> Iterator:
-    """Start processes that are terminated at the end of the test."""
+def spawn(tmp_path_factory: pytest.TempPathFactory) -> Iterator:
+    """Start processes that are terminated at the end of the test. Their temporary files (``$TMPDIR``:
+    e.g. the run folders ``safemimic demo`` keeps for its logs) go to the test's own temporary
+    folder, which pytest removes, not to the machine's ``/tmp``."""
     procs: list[Proc] = []
+    scratch = str(tmp_path_factory.mktemp("spawned"))
 
     def start(*args: str, env: dict[str, str] | None = None) -> Proc:
-        proc = Proc([sys.executable, *args], env)
+        proc = Proc([sys.executable, *args], {"TMPDIR": scratch, **(env or {})})
         procs.append(proc)
         return proc
 
