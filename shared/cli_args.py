@@ -1,14 +1,17 @@
-"""Command-line flags shared by every service (zenoh-python examples style).
+"""Command-line flags shared by every service (zenoh-python examples style), and checks of the
+commands' arguments.
 
 ``--config FILE``, ``--mode``, ``--connect``, ``--listen``, ``--no-multicast``, ``--robot-id``,
 ``--certs DIR`` (mutual TLS with this service's certificate from DIR: ``bus.tls.dir``) or
 ``--insecure`` (``bus.tls: null``, the open development bus); the parsed flags become overrides
-on top of the YAML file and the environment.
+on top of the YAML file and the environment. :func:`check_output_path`: an output argument that
+can be written, checked before a command does any work.
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from shared.config import StackConfig, deep_merge, load_config
@@ -55,3 +58,19 @@ def bus_overrides(args: argparse.Namespace) -> dict[str, Any]:
 def config_from_args(args: argparse.Namespace, extra: dict[str, Any] | None = None) -> StackConfig:
     """Load the configuration: file, environment, then the flags, then ``extra``."""
     return load_config(args.config, overrides=deep_merge(bus_overrides(args), extra or {}))
+
+
+def check_output_path(path: str | Path, argument: str, *, folder: bool) -> None:
+    """Raise ValueError naming ``argument`` when ``path`` cannot be written as asked, before any work:
+    a folder (``folder``) that exists as something else, a file that exists as a folder, or a path
+    below an existing file. Creates nothing; a path that does not exist yet is fine."""
+    path = Path(path).expanduser()
+    if folder and path.exists() and not path.is_dir():
+        raise ValueError(f"{argument} {path}: exists and is not a folder")
+    if not folder and path.is_dir():
+        raise ValueError(f"{argument} {path}: is a folder, not a file name")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ValueError(f"{argument} {path}: {parent} is a file, not a folder")
+            break

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from safemimic.evaluate.goals import goal_report
+from shared.cli_args import check_output_path
 from shared.errors import SafemimicError
 
 #: The settings whose difference makes two suites measure different inputs.
@@ -262,8 +263,10 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 def run(args: argparse.Namespace) -> int:
     try:
+        if args.out is not None:
+            check_output_path(args.out, "--out", folder=False)
         comparison = Comparison(load_summary(args.before), load_summary(args.after))
-    except CompareError as exc:
+    except ValueError as exc:  # a CompareError, or an --out that cannot be written
         print(f"safemimic compare: {exc}", file=sys.stderr)
         return 2
     report = comparison.markdown(every_run=args.all)

@@ -29,6 +29,7 @@ from services.executor.mujoco.model import SimModelError
 from services.perception.scenarios import SCENARIOS
 from services.perception.sources import SourceUnavailable
 from services.safety.kinematics import KinematicsError
+from shared.cli_args import check_output_path
 from shared.config import ConfigError
 from shared.robot_spec import RobotSpecError
 
@@ -147,7 +148,10 @@ def _check_rerun(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         camera = camera_model(args)
-        rrd_path(args.rrd, Path(args.out), args.suite is not None)
+        check_output_path(args.out, "--out", folder=True)
+        rrd = rrd_path(args.rrd, Path(args.out), args.suite is not None)
+        if rrd is not None:
+            check_output_path(rrd, "--rrd", folder=False)
         _check_rerun(args)
     except ValueError as exc:
         print(f"safemimic evaluate: {exc}", file=sys.stderr)

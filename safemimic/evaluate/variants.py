@@ -48,6 +48,8 @@ from pathlib import Path
 
 import numpy as np
 
+from shared.cli_args import check_output_path
+
 #: Keypoints a variant needs: the pelvis (turn axis) and the shoulders (facing direction).
 NEEDED = ("pelvis", "left_shoulder", "right_shoulder")
 #: The size factors of the scaled variants (``--scales``): a 15 % shorter and a 15 % taller person.
@@ -288,8 +290,9 @@ def run(args: argparse.Namespace) -> int:
     if not sources:
         print(f"error: no .npz recording in {args.source}", file=sys.stderr)
         return 2
-    args.out.mkdir(parents=True, exist_ok=True)
     try:
+        check_output_path(args.out, "OUT", folder=True)
+        args.out.mkdir(parents=True, exist_ok=True)
         for source in sources:
             for path in write_variants(source, args.out, args.turns, args.step_m, args.side_m, args.scales,
                                        args.shoulder_width, args.speeds):

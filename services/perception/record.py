@@ -13,6 +13,7 @@ import sys
 from services.perception.placement import parse_placement
 from services.perception.scenarios import SCENARIOS, get_scenario, scenario_recording
 from shared.body import Body
+from shared.cli_args import check_output_path
 from shared.config import ConfigError, load_config
 from shared.skeleton import write_recording
 
@@ -32,6 +33,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 def run(args: argparse.Namespace) -> int:
     try:
+        check_output_path(args.out, "OUT.npz", folder=False)
         conf = load_config(args.config).perception
         scenario = get_scenario(args.name)
         placement = parse_placement(args.placement, conf, auto=scenario.placement)

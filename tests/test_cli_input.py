@@ -1,0 +1,60 @@
+"""Bad input to the ``safemimic`` commands: one line on standard error naming the argument, exit
+status 2, no traceback, and before any work (nothing evaluated, written or started).
+
+The commands run in this process (:func:`safemimic.cli.main`), on real files in a temporary folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from safemimic.cli import main as safemimic
+from shared.cli_args import check_output_path
+
+
+def refused(capsys: pytest.CaptureFixture[str], *argv: str) -> str:
+    """The one line a command that refuses ``argv`` prints on standard error (exit 2 asserted)."""
+    assert safemimic(list(argv)) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_an_output_path_is_checked_for_what_it_must_be(tmp_path: Path) -> None:
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    check_output_path(tmp_path / "new" / "deeper", "--out", folder=True)  # created later: fine
+    check_output_path(tmp_path, "--out", folder=True)
+    check_output_path(tmp_path / "report.md", "--out", folder=False)
+    with pytest.raises(ValueError, match="--out .*afile: exists and is not a folder"):
+        check_output_path(afile, "--out", folder=True)
+    with pytest.raises(ValueError, match="OUT.npz .*: .*afile is a file, not a folder"):
+        check_output_path(afile / "x" / "y.npz", "OUT.npz", folder=False)
+    with pytest.raises(ValueError, match="--out .*: is a folder, not a file name"):
+        check_output_path(tmp_path, "--out", folder=False)
+    assert not (tmp_path / "new").exists()  # a check creates nothing
+
+
+def test_commands_refuse_an_output_path_they_cannot_write_before_any_work(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    err = refused(capsys, "evaluate", "--scenario", "wave", "--seconds", "1", "--out", str(afile))
+    assert err == f"safemimic evaluate: --out {afile}: exists and is not a folder"
+    (tmp_path / "d.rrd").mkdir()
+    err = refused(capsys, "evaluate", "--scenario", "wave", "--out", str(tmp_path), "--rrd", str(tmp_path / "d.rrd"))
+    assert err.startswith("safemimic evaluate: --rrd ") and "is a folder" in err
+    err = refused(capsys, "record-scenario", "wave", str(afile / "x.npz"))
+    assert err.startswith("record-scenario: OUT.npz ") and "afile is a file, not a folder" in err
+    err = refused(capsys, "record-scenario", "wave", str(tmp_path))
+    assert "OUT.npz" in err and "is a folder" in err
+    recording = tmp_path / "clip.npz"
+    assert safemimic(["record-scenario", "wave", str(recording), "--seconds", "0.5"]) == 0
+    capsys.readouterr()
+    err = refused(capsys, "variants", str(recording), str(afile))
+    assert err.endswith(f"OUT {afile}: exists and is not a folder")
+    err = refused(capsys, "compare", str(tmp_path), str(tmp_path), "--out", str(tmp_path))
+    assert err == f"safemimic compare: --out {tmp_path}: is a folder, not a file name"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "clip.npz", "d.rrd"]  # nothing written
