@@ -58,14 +58,21 @@ def _require(condition: bool, path: Path, message: str) -> None:
         raise RecordingError(f"{path}: {message}")
 
 
-def read_recording(path: str | Path) -> Recording:
-    """Read and check a ``.npz`` recording; :class:`RecordingError` on any violation."""
+def read_npz(path: str | Path) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` file ``path`` by its key, unchecked; :class:`RecordingError` when
+    the file is missing, empty or not an ``.npz`` (no pickled objects)."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
+            return {key: data[key] for key in data.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise RecordingError(f"{path}: cannot read as .npz: {exc}") from None
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read and check a ``.npz`` recording; :class:`RecordingError` on any violation."""
+    path = Path(path)
+    arrays = read_npz(path)
     for key in ("names", "t", "xyz", "fps"):
         _require(key in arrays, path, f"missing required key {key!r} (has: {', '.join(sorted(arrays))})")
 

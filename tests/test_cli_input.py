@@ -58,3 +58,15 @@ def test_commands_refuse_an_output_path_they_cannot_write_before_any_work(
     err = refused(capsys, "compare", str(tmp_path), str(tmp_path), "--out", str(tmp_path))
     assert err == f"safemimic compare: --out {tmp_path}: is a folder, not a file name"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "clip.npz", "d.rrd"]  # nothing written
+
+
+def test_variants_refuse_a_file_that_is_no_npz_as_evaluate_does(tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    for name, content in (("empty.npz", b""), ("text.npz", b"not a recording\n")):
+        bad = tmp_path / name
+        bad.write_bytes(content)
+        by_variants = refused(capsys, "variants", str(bad), str(tmp_path / "out"))
+        by_evaluate = refused(capsys, "evaluate", "--skeleton", str(bad), "--out", str(tmp_path / "eval"))
+        assert f"{name}: cannot read as .npz: " in by_variants
+        assert by_variants.split(f"{name}: ", 1)[1] == by_evaluate.split(f"{name}: ", 1)[1]
+    assert not list((tmp_path / "out").glob("*"))

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.cli_args import check_output_path
+from shared.skeleton import read_npz
 
 #: Keypoints a variant needs: the pelvis (turn axis) and the shoulders (facing direction).
 NEEDED = ("pelvis", "left_shoulder", "right_shoulder")
@@ -183,9 +184,9 @@ def quickened(fields: dict[str, np.ndarray], factor: float) -> dict[str, np.ndar
 
 
 def read_recording(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
-    """Every field of recording ``path`` and its keypoint names; ValueError when it cannot make variants."""
-    with np.load(path, allow_pickle=False) as data:
-        fields = {key: data[key] for key in data.files}
+    """Every field of recording ``path`` and its keypoint names; ValueError when it cannot make variants
+    (:class:`~shared.skeleton.RecordingError` when it is no ``.npz`` at all)."""
+    fields = read_npz(path)
     if "xyz" not in fields or "names" not in fields:
         raise ValueError(f"{path}: not a recording (needs 'names' and 'xyz')")
     names = [str(n) for n in fields["names"]]
