@@ -24,6 +24,7 @@ import json
 import math
 import os
 import secrets
+import sys
 import tempfile
 import threading
 import time
@@ -48,6 +49,7 @@ from safemimic.stack import (
     write_paper_scenarios,
 )
 from services.config_api.token import TOKEN_ENV
+from services.perception.placement import check_placement
 from shared.bus import Bus
 from shared.config import BusMode, TlsConfig, load_config
 from shared.messages import HumanState, JointCommand, JointState, SafetyStatus
@@ -201,13 +203,18 @@ def _wait_for_log(child: Child, marker: str, stop: threading.Event, timeout_s: f
 
 def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
-        print("--duration must be > 0")
+        print("safemimic demo: --duration must be > 0", file=sys.stderr)
+        return 2
+    try:
+        check_placement(args.placement, "--placement")
+    except ValueError as exc:
+        print(f"safemimic demo: {exc}", file=sys.stderr)
         return 2
     run_dir = Path(tempfile.mkdtemp(prefix="safemimic-demo-"))
     try:
         skeleton = _skeleton(run_dir)
     except RecordingError as exc:
-        print(f"demo: ${SKELETON_ENV}: {exc}")
+        print(f"safemimic demo: ${SKELETON_ENV}: {exc}", file=sys.stderr)
         return 2
     token = os.environ.get(TOKEN_ENV) or secrets.token_urlsafe(24)
     endpoint = router_endpoint("127.0.0.1", free_port(), secure=not args.insecure)

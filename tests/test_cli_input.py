@@ -70,3 +70,29 @@ def test_variants_refuse_a_file_that_is_no_npz_as_evaluate_does(tmp_path: Path,
         assert f"{name}: cannot read as .npz: " in by_variants
         assert by_variants.split(f"{name}: ", 1)[1] == by_evaluate.split(f"{name}: ", 1)[1]
     assert not list((tmp_path / "out").glob("*"))
+
+
+def test_placements_are_checked_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    clips = tmp_path / "clips"
+    assert safemimic(["record-scenario", "wave", str(clips / "wave.npz"), "--seconds", "0.5"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "out"
+    err = refused(capsys, "evaluate", "--suite", str(clips), "--placements", "facing,garbage", "--out", str(out))
+    assert err == ("safemimic evaluate: --placements: placement 'garbage': expected auto, side-by-side, facing, "
+                   "recorded or x,y,yaw (m, m, rad)")
+    err = refused(capsys, "evaluate", "--suite", str(clips), "--placements", "1,2", "--out", str(out))
+    assert err.startswith("safemimic evaluate: --placements: placement '1,2': expected auto")
+    err = refused(capsys, "evaluate", "--scenario", "wave", "--placement", "0,0,nan", "--out", str(out))
+    assert err == "safemimic evaluate: --placement: placement '0,0,nan' is not finite"
+    assert not out.exists()  # no summary, no run folder
+    err = refused(capsys, "demo", "--placement", "garbage", "--no-rerun")
+    assert err.startswith("safemimic demo: --placement: placement 'garbage': expected auto, side-by-side")
+    assert "router:" not in capsys.readouterr().out  # nothing started
+
+
+def test_an_x_y_yaw_placement_keeps_its_three_numbers_in_a_placements_list() -> None:
+    from safemimic.evaluate.suite import _placements
+
+    assert _placements("facing, 0.8,-0.5,3.14 ,recorded") == ["facing", "0.8,-0.5,3.14", "recorded"]
+    with pytest.raises(ValueError, match="--placements needs at least one placement"):
+        _placements(" , ")

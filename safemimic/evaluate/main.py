@@ -26,6 +26,7 @@ from safemimic.evaluate.metrics import RUN_KEYS
 from safemimic.evaluate.person import DEFAULT_LATENCY_S, CameraModel, latency_text
 from safemimic.evaluate.progress import ProgressBar
 from services.executor.mujoco.model import SimModelError
+from services.perception.placement import check_placement
 from services.perception.scenarios import SCENARIOS
 from services.perception.sources import SourceUnavailable
 from services.safety.kinematics import KinematicsError
@@ -88,7 +89,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
                         help="side-by-side | facing | recorded | x,y,yaw (m, m, rad) | auto (a scenario's own; "
                         "a recording: side-by-side); default auto")
     parser.add_argument("--placements", default="side-by-side,facing", metavar="LIST",
-                        help="with --suite: comma-separated placements (default side-by-side,facing)")
+                        help="with --suite: comma-separated placements, as --placement (x,y,yaw: three numbers in a row; "
+                        "default side-by-side,facing)")
     parser.add_argument("--jobs", type=int, default=None, metavar="N",
                         help="with --suite: parallel processes (default: the CPU count)")
     parser.add_argument("--robot-model", metavar="PATH",
@@ -149,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         camera = camera_model(args)
         check_output_path(args.out, "--out", folder=True)
+        check_placement(args.placement, "--placement")
         rrd = rrd_path(args.rrd, Path(args.out), args.suite is not None)
         if rrd is not None:
             check_output_path(rrd, "--rrd", folder=False)

@@ -34,6 +34,7 @@ from safemimic.evaluate.fidelity import LAG_STAGES
 from safemimic.evaluate.goals import goal_report, goals_markdown
 from safemimic.evaluate.person import CameraModel, latency_text
 from safemimic.evaluate.progress import ProgressBar
+from services.perception.placement import check_placement
 
 #: (header, what it shows) of summary.md's columns after clip and placement.
 COLUMNS: tuple[tuple[str, str], ...] = (
@@ -68,10 +69,28 @@ COLUMNS: tuple[tuple[str, str], ...] = (
 _REPORT_EVERY = 50  # control steps between progress messages from a worker
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _placements(text: str) -> list[str]:
-    placements = [p.strip() for p in text.split(",") if p.strip()]
+    """The placements of ``--placements``, comma-separated, an x,y,yaw placement's three numbers
+    together (``facing,0.8,0.5,3.14``: facing and 0.8,0.5,3.14); ValueError for none or one that
+    :func:`~services.perception.placement.parse_placement` refuses."""
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    placements = []
+    while parts:
+        take = 3 if _is_number(parts[0]) else 1
+        placements.append(",".join(parts[:take]))
+        parts = parts[take:]
     if not placements:
         raise ValueError("--placements needs at least one placement")
+    for placement in placements:
+        check_placement(placement, "--placements")
     return placements
 
 

@@ -83,6 +83,15 @@ def parse_placement(text: str, conf: PerceptionConfig, auto: str = "side-by-side
     return Placement(x=x, y=y, yaw=yaw)
 
 
+def check_placement(text: str, argument: str) -> None:
+    """Raise ValueError, naming the command-line ``argument``, unless ``text`` is one of
+    :func:`parse_placement`'s forms; no configuration needed (a command checks it before any work)."""
+    try:
+        parse_placement(text, PerceptionConfig())
+    except ValueError as exc:
+        raise ValueError(f"{argument}: {exc}") from None
+
+
 def initial_pose(recording: Recording) -> tuple[float, float, float]:
     """(x, y, heading) of the person at the start: pelvis position and facing direction (rad).
 
