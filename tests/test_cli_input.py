@@ -96,3 +96,14 @@ def test_an_x_y_yaw_placement_keeps_its_three_numbers_in_a_placements_list() -> 
     assert _placements("facing, 0.8,-0.5,3.14 ,recorded") == ["facing", "0.8,-0.5,3.14", "recorded"]
     with pytest.raises(ValueError, match="--placements needs at least one placement"):
         _placements(" , ")
+
+
+def test_health_refuses_a_name_that_is_no_service_and_a_timeout_not_above_zero(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    err = refused(capsys, "health", "safety", "bogus", "--insecure")
+    assert err == ("safemimic health: SERVICE 'bogus': not a service; the services are "
+                   "perception, safety, executor, config_api")
+    for timeout in ("-1", "0"):
+        err = refused(capsys, "health", "config-api", "--timeout", timeout, "--insecure")
+        assert err == f"safemimic health: --timeout must be > 0 seconds, got {timeout}"
+    assert capsys.readouterr().out == ""  # no bus opened: no JSON line

@@ -195,10 +195,13 @@ def test_health_command_reports_liveliness(spawn) -> None:
                                 capture_output=True, text=True, timeout=30, cwd=REPO)
         return result.returncode, json.loads(result.stdout)
 
-    with Bus(BusConfig(mode="client", connect=[endpoint], multicast_scouting=False), "g1", "safety") as bus:
+    bus_conf = BusConfig(mode="client", connect=[endpoint], multicast_scouting=False)
+    with Bus(bus_conf, "g1", "safety") as bus, Bus(bus_conf, "g1", "config_api") as api:
         bus.declare_alive()
-        assert health("safety") == (0, {"alive": ["safety"], "missing": []})
-        assert health("safety", "executor") == (1, {"alive": ["safety"], "missing": ["executor"]})
+        api.declare_alive()
+        assert health("safety") == (0, {"alive": ["config_api", "safety"], "missing": []})
+        assert health("safety", "executor") == (1, {"alive": ["config_api", "safety"], "missing": ["executor"]})
+        assert health("config-api") == health("config_api") == (0, {"alive": ["config_api", "safety"], "missing": []})
     assert health("safety")[0] == 1  # the token went with the session
     unreachable = subprocess.run(
         [sys.executable, "-m", "safemimic.cli", "health", "--mode", "client", "--connect", f"tcp/127.0.0.1:{free_port()}"],
