@@ -11,7 +11,7 @@ import argparse
 import importlib
 import sys
 
-from shared.entrypoint import run_command
+from shared.entrypoint import ParagraphHelpFormatter, run_command
 from shared.version import VERSION
 
 #: subcommand → (module, one-line help). Later issues add perception, safety, executor, ...
@@ -39,7 +39,7 @@ def _top_parser() -> argparse.ArgumentParser:
         description="Safe human-to-humanoid motion imitation: perception → CBF-QP safety layer → robot, over Zenoh.",
         epilog="Run 'safemimic COMMAND --help' for the options of a command. The benchmarks and the reliability "
                "checks run from a checkout of the repository, not from the package: make bench, make reliability.",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=ParagraphHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"safemimic {VERSION}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")

@@ -6,20 +6,40 @@ way with or without the ``safemimic`` package. A command module provides
 ``build_parser(parser) -> parser`` and ``run(args) -> int``; a refusal it raises on purpose
 (:class:`~shared.errors.SafemimicError`: an invalid configuration, a missing certificate, a source
 that cannot open, ...) ends the command with its message on one line and exit code 2, never a
-traceback.
+traceback. A help text with paragraphs and examples uses :class:`ParagraphHelpFormatter`.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
 import os
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 
 from shared.errors import SafemimicError
 
 LOG_FORMAT = "%(asctime)s %(name)s %(levelname)s %(message)s"
+
+
+class ParagraphHelpFormatter(argparse.HelpFormatter):
+    """argparse's help, its description and epilog wrapped to the terminal paragraph by paragraph
+    (blank lines kept), lines that start with a space (examples, commands) kept as written."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        paragraphs = []
+        for paragraph in text.split("\n\n"):
+            lines: list[str] = []
+            for verbatim, group in itertools.groupby(paragraph.splitlines(), key=lambda line: line[:1].isspace()):
+                if verbatim:
+                    lines += [indent + line for line in group]
+                else:
+                    lines.append(textwrap.fill(" ".join(" ".join(group).split()), width,
+                                               initial_indent=indent, subsequent_indent=indent))
+            paragraphs.append("\n".join(lines))
+        return "\n\n".join(paragraphs)
 
 
 def run_command(

@@ -107,3 +107,20 @@ def test_health_refuses_a_name_that_is_no_service_and_a_timeout_not_above_zero(
         err = refused(capsys, "health", "config-api", "--timeout", timeout, "--insecure")
         assert err == f"safemimic health: --timeout must be > 0 seconds, got {timeout}"
     assert capsys.readouterr().out == ""  # no bus opened: no JSON line
+
+
+@pytest.mark.parametrize("command", ["variants", "compare", "evaluate"])
+def test_help_is_wrapped_keeps_its_examples_and_names_the_arguments_as_the_usage_does(
+        command: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COLUMNS", "100")
+    with pytest.raises(SystemExit) as exit_:
+        safemimic([command, "--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    assert max(len(line) for line in text.splitlines()) <= 100
+    assert "``" not in text
+    if command != "evaluate":
+        assert "\n  safemimic evaluate --suite " in text  # an example as written, on a line of its own
+    if command == "variants":
+        assert "SOURCE OUT\n" in text and "\n  SOURCE " in text and "\n  OUT " in text
+

@@ -40,6 +40,7 @@ from typing import Any
 
 from safemimic.evaluate.goals import goal_report
 from shared.cli_args import check_output_path
+from shared.entrypoint import ParagraphHelpFormatter
 from shared.errors import SafemimicError
 
 #: The settings whose difference makes two suites measure different inputs.
@@ -241,7 +242,7 @@ class Comparison:
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     parser = parser or argparse.ArgumentParser(prog="safemimic compare")
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.formatter_class = ParagraphHelpFormatter
     parser.description = (
         "Two evaluation suites side by side, before → after a change: their CBF runs together (true "
         "contacts, robot-caused and approach steps, robot–robot contacts, min self h, NaN, hold steps, steps with a "

@@ -31,6 +31,7 @@ from services.perception.scenarios import SCENARIOS
 from services.perception.sources import SourceUnavailable
 from services.safety.kinematics import KinematicsError
 from shared.cli_args import check_output_path
+from shared.entrypoint import ParagraphHelpFormatter
 from shared.config import ConfigError
 from shared.robot_spec import RobotSpecError
 
@@ -64,7 +65,7 @@ def camera_model(args: argparse.Namespace) -> CameraModel:
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     parser = parser or argparse.ArgumentParser(prog="safemimic evaluate")
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.formatter_class = ParagraphHelpFormatter
     parser.description = (
         "Offline evaluation against the true person: the services' own code (point filter → angles → capsules "
         "→ retargeting → CBF-QP → MuJoCo) in lockstep at the safety rate, without Zenoh, once with the CBF layer "

@@ -2,8 +2,8 @@
 taller or shorter person, or faster.
 
 The development clips are four; the product meets other people doing other things (turns, walking,
-someone stepping into the robot). ``safemimic variants IN OUT`` (or ``python -m
-safemimic.evaluate.variants IN OUT``) writes, for every recording ``IN/X.npz`` (the evaluator's
+someone stepping into the robot). ``safemimic variants SOURCE OUT`` (or ``python -m
+safemimic.evaluate.variants SOURCE OUT``) writes, for every recording ``SOURCE/X.npz`` (the evaluator's
 ``names``/``t``/``xyz`` format, z up, metres), these variants into ``OUT`` with every other field
 unchanged:
 
@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.cli_args import check_output_path
+from shared.entrypoint import ParagraphHelpFormatter
 from shared.skeleton import read_npz
 
 #: Keypoints a variant needs: the pelvis (turn axis) and the shoulders (facing direction).
@@ -259,24 +260,34 @@ def _width(text: str) -> float:
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     parser = parser or argparse.ArgumentParser(prog="safemimic variants")
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.formatter_class = ParagraphHelpFormatter
     parser.description = (
-        __doc__.split("\n\n", 1)[1] + "\n"
+        "Test variants of skeleton recordings, to evaluate with 'safemimic evaluate --suite OUT': for each "
+        "recording X.npz in SOURCE (a .npz file or a folder of them) the same motion written into OUT turned in "
+        "place (X_turn.npz, --turns), walking forward (X_stepin.npz, --step-m), stepping towards the person's "
+        "right (X_sidestep.npz, --side-m), by a shorter or taller person (X_scaleNNN.npz, --scales), mirrored as "
+        "by a left-handed person (X_mirror.npz), with broader shoulders (X_shouldersNNNmm.npz, --shoulder-width) "
+        "and faster (X_fastNNN.npz, --speeds); every other field of the file is unchanged.\n\n"
+        "Placed facing the robot, the person who walks forward walks into it; placed side by side, the one who "
+        "steps right steps into it. The variants are geometric transforms of real motion, not new recordings: "
+        "they test what the recordings do not show.\n\n"
         "  safemimic variants clips/ variants/\n"
         "  safemimic evaluate --suite variants/ --jobs 2 --out variants-eval"
     )
-    parser.add_argument("source", type=Path, help="a recording (.npz) or a folder of them")
-    parser.add_argument("out", type=Path, help="folder for the variants (created)")
-    parser.add_argument("--turns", type=float, default=1.0, help="full turns in place over the clip (default 1)")
-    parser.add_argument("--step-m", type=float, default=1.0, help="distance walked forward over the clip, m (default 1)")
-    parser.add_argument("--side-m", type=float, default=0.5,
+    parser.add_argument("source", type=Path, metavar="SOURCE", help="a recording (.npz) or a folder of them")
+    parser.add_argument("out", type=Path, metavar="OUT", help="folder for the variants (created)")
+    parser.add_argument("--turns", type=float, default=1.0, metavar="N",
+                        help="full turns in place over the clip (default 1)")
+    parser.add_argument("--step-m", type=float, default=1.0, metavar="M",
+                        help="distance walked forward over the clip, m (default 1)")
+    parser.add_argument("--side-m", type=float, default=0.5, metavar="M",
                         help="distance stepped towards the person's right over the clip, m (default 0.5)")
-    parser.add_argument("--scales", type=_factors, default=SCALES,
+    parser.add_argument("--scales", type=_factors, default=SCALES, metavar="LIST",
                         help="comma-separated size factors of the scaled variants (default "
                         f"{','.join(map(str, SCALES))}; '' for none)")
-    parser.add_argument("--shoulder-width", type=_width, default=BROAD_SHOULDERS,
+    parser.add_argument("--shoulder-width", type=_width, default=BROAD_SHOULDERS, metavar="M",
                         help=f"shoulder width of the broadened variant, m (default {BROAD_SHOULDERS}; 0 for none)")
-    parser.add_argument("--speeds", type=_factors, default=SPEEDS,
+    parser.add_argument("--speeds", type=_factors, default=SPEEDS, metavar="LIST",
                         help="comma-separated speed factors of the faster variants (default "
                         f"{','.join(map(str, SPEEDS))}; '' for none)")
     return parser
