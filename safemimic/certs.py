@@ -227,6 +227,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     stack.add_argument("--host", action="append", default=[], metavar="HOST", help="an address of the router (repeatable)")
     stack.add_argument("--split", action="store_true", help="also DIR/NAME/{ca.pem,NAME.pem,NAME.key} per identity")
     stack.add_argument("--owner", metavar="UID:GID", help="with --split: owner of each identity's folder")
+    sub.metavar = "{" + ",".join(sub.choices) + "}"  # a missing action: "required: {init,issue,stack}"
     return parser
 
 

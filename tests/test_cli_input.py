@@ -124,3 +124,9 @@ def test_help_is_wrapped_keeps_its_examples_and_names_the_arguments_as_the_usage
     if command == "variants":
         assert "SOURCE OUT\n" in text and "\n  SOURCE " in text and "\n  OUT " in text
 
+
+def test_certs_without_an_action_names_the_actions(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        safemimic(["certs"])
+    assert exit_.value.code == 2
+    assert "the following arguments are required: {init,issue,stack}" in capsys.readouterr().err
