@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "variants": ("safemimic.evaluate.variants", "test variants of recordings (turned, stepping in or sideways, scaled, broadened, mirrored) to evaluate with --suite"),
     "demo": ("safemimic.demo", "run the stack end to end on this machine and print what happens"),
     "viewer": ("services.viewer.service", "live 3D view in Rerun of robot, person and barriers (subscribes only; web viewer, --save FILE.rrd)"),
+    "config": ("safemimic.show_config", "print the configuration a service would run with (file, SAFEMIMIC__ variables, flags), validated"),
     "health": ("safemimic.health", "which services are alive on the bus (liveliness tokens); exit 0 if the named ones are"),
     "certs": ("safemimic.certs", "the deployment's CA and one certificate per service (mutual TLS; the router's access control)"),
 }

@@ -50,7 +50,7 @@ def run_command(
 ) -> int:
     """Parse ``argv`` with the command's parser (``prog`` ``safemimic NAME``), log at INFO, run it;
     its exit code (2 with ``safemimic NAME: message`` on stderr for a :class:`SafemimicError` it
-    raises). A Zenoh session close that hung (its router went away at the same moment) would keep
+    raises; 1, silently, when the reader of its output left). A Zenoh session close that hung (its router went away at the same moment) would keep
     the process alive: then the output is flushed and the process leaves at once."""
     parser = build_parser(argparse.ArgumentParser(prog=f"safemimic {name}"))
     args = parser.parse_args(list(argv))
@@ -60,6 +60,9 @@ def run_command(
     except SafemimicError as exc:
         print(f"safemimic {name}: {exc}", file=sys.stderr, flush=True)
         code = 2
+    except BrokenPipeError:  # the reader left (`safemimic config | head`): no traceback (Python's recipe)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 1
     bus = sys.modules.get("shared.bus")  # imported only by commands that opened a Zenoh session
     if bus is not None and bus.hung_closes():
         sys.stdout.flush()

@@ -6,12 +6,15 @@ The commands run in this process (:func:`safemimic.cli.main`), on real files in 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
+import yaml
 
 from safemimic.cli import main as safemimic
 from shared.cli_args import check_output_path
+from shared.config import load_config
 
 
 def refused(capsys: pytest.CaptureFixture[str], *argv: str) -> str:
@@ -130,3 +133,28 @@ def test_certs_without_an_action_names_the_actions(capsys: pytest.CaptureFixture
         safemimic(["certs"])
     assert exit_.value.code == 2
     assert "the following arguments are required: {init,issue,stack}" in capsys.readouterr().err
+
+
+def test_config_prints_what_a_service_would_run_with(capsys: pytest.CaptureFixture[str],
+                                                      monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """``safemimic config``: the file, the variables and the flags merged as a service merges them,
+    one value by its dotted name, the token hidden; a bad value or name refused (exit 2)."""
+    site = tmp_path / "site.yaml"
+    site.write_text("safety:\n  gain: 12.0\napi:\n  token: " + "s" * 32 + "\n")
+    monkeypatch.setenv("SAFEMIMIC__SAFETY__GAMMA", "5")
+    assert safemimic(["config", "--config", str(site), "--connect", "tcp/10.0.0.2:7447"]) == 0
+    printed = yaml.safe_load(capsys.readouterr().out)
+    assert printed["safety"]["gain"] == 12.0 and printed["safety"]["gamma"] == 5.0
+    assert printed["bus"]["connect"] == ["tcp/10.0.0.2:7447"]
+    assert printed["api"]["token"] == "<set, hidden>"
+    assert printed == {**load_config(site, overrides={"bus": {"connect": ["tcp/10.0.0.2:7447"]}}).model_dump(mode="json"),
+                       "api": printed["api"]}
+    assert safemimic(["config", "--config", str(site), "safety.gain"]) == 0
+    assert capsys.readouterr().out == "12.0\n"
+    assert safemimic(["config", "--config", str(site), "--json", "safety.u_max"]) == 0
+    assert json.loads(capsys.readouterr().out) == load_config(site).safety.u_max
+    assert "safety has no 'gian'" in refused(capsys, "config", "safety.gian")
+    monkeypatch.setenv("SAFEMIMIC__SAFETY__GAMMA", "-1")
+    assert safemimic(["config"]) == 2
+    err = capsys.readouterr().err
+    assert "safemimic config: invalid configuration:" in err and "safety.gamma (from $SAFEMIMIC__SAFETY__GAMMA)" in err
