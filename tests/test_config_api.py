@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
@@ -25,6 +26,7 @@ import pytest
 from shared.bus import Bus
 from shared.config import BusConfig, load_config
 from shared.messages import ConfigUpdate, HumanState, SafetyMode, SafetyStatus
+from shared.names import CAPSULE_NAMES
 from tests.support.bus import BusRecorder
 from tests.support.processes import Proc, free_port
 
@@ -82,13 +84,16 @@ class FakeSafety:
     """Plays the safety service on the bus: applies every ConfigUpdate (if ``ack``) and reports
     the applied version in a SafetyStatus at 50 Hz, with the given live values (``intrusion``: every
     status reports a person inside a margin; ``backing_out``: and the stop backing out of them;
-    ``lateness_ms``: the person's states that late)."""
+    ``lateness_ms``: the person's states that late; ``refuse``: it refuses every update, counting
+    it in ``dropped["config"]`` as the safety service does)."""
 
     def __init__(self, bus: Bus, ack: bool = True, report_version: int | None = None, mode: SafetyMode = SafetyMode.ACTIVE,
                  h_self: float = 0.031, h_human: float | None = 0.142, robot_id: str | None = None,
-                 intrusion: bool = False, backing_out: bool = False, lateness_ms: float = 0.0) -> None:
+                 intrusion: bool = False, backing_out: bool = False, lateness_ms: float = 0.0,
+                 refuse: bool = False) -> None:
         self.version = report_version or 0
-        self.ack = ack and report_version is None
+        self.ack = ack and report_version is None and not refuse
+        self.refuse, self.refused = refuse, 0
         self.mode, self.h_self, self.h_human, self.intrusion = mode, h_self, h_human, intrusion
         self.backing_out, self.lateness_ms = backing_out, lateness_ms
         self.published = 0
@@ -100,6 +105,8 @@ class FakeSafety:
     def _on_config(self, update: ConfigUpdate) -> None:
         if self.ack:
             self.version = max(self.version, update.version)
+        elif self.refuse and update.version > self.version:
+            self.refused += 1
 
     def _run(self) -> None:
         while not self._stop.wait(0.02):
@@ -110,6 +117,7 @@ class FakeSafety:
                     step_time_ms=0.2, config_version=self.version, backend="daqp", executor_holding=True,
                     watchdog_trips={"executor_command": 2}, person_intrusion=self.intrusion,
                     backing_out=self.backing_out, human_lateness_ms=self.lateness_ms,
+                    dropped={"config": self.refused} if self.refused else {},
                 )
             )
             self.published += 1
@@ -197,6 +205,10 @@ def test_openapi_documents_the_contract(api: ApiServer) -> None:
     patch = schema["components"]["schemas"]["SafetyPatch"]["properties"]
     assert patch["gamma"]["exclusiveMinimum"] == 0 and patch["phi"]["maximum"] == 0.5
     assert patch["w"]["minItems"] == patch["w"]["maxItems"] == 8
+    # the velocity bounds as the writer takes them: within the G1's joint_velocity_limits, joint by joint
+    assert [item["maximum"] for item in patch["u_max"]["prefixItems"]] == [37.0] * 8
+    u_min = next(variant for variant in patch["u_min"]["anyOf"] if variant.get("type") == "array")
+    assert [item["minimum"] for item in u_min["prefixItems"]] == [-37.0] * 8 and u_min["items"] is False
     assert "401" in paths["/api/config/safety"]["patch"]["responses"]
     assert "409" in paths["/api/calibrate"]["post"]["responses"]
     assert schema["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
@@ -236,6 +248,10 @@ def test_writes_need_the_token(api: ApiServer, method: str, path: str, body: dic
         ("/api/config/safety", {"w": [1.0] * 7 + [0.0]}, "w"),
         ("/api/config/safety", {"u_min": [0.5] * 8}, "u_min"),
         ("/api/config/safety", {"u_max": [-1.0] * 8}, "u_max"),
+        # within the API's range but beyond the G1's joint_velocity_limits (37 rad/s), which the safety
+        # service would refuse: not saved, or it would ride along with every later change
+        ("/api/config/safety", {"u_max": [3.0, 3.0, 40.0, 10.0, 10.0, 10.0, 10.0, 10.0]}, "u_max"),
+        ("/api/config/safety", {"u_min": [-3.0, -3.0, -10.0, -10.0, -40.0, -10.0, -10.0, -10.0]}, "u_min"),
         ("/api/config/safety", {"accel_max": [0.0] * 8}, "accel_max"),
         ("/api/config/safety", {"self_margin": -0.001}, "self_margin"),
         ("/api/config/safety", {"self_margin": 0.5}, "self_margin"),
@@ -355,11 +371,20 @@ def test_unacknowledged_change_is_saved_and_reported(api: ApiServer, bus: Bus) -
     waited = time.monotonic() - started
     result = response.json()
     assert response.status_code == 200 and result["applied"] is False
-    assert result["version"] == version + 1 and "no safety service acknowledged" in result["detail"]
+    assert result["version"] == version + 1 and "no safety service is reporting" in result["detail"]
     assert ACK_TIMEOUT_S * 0.9 <= waited < ACK_TIMEOUT_S + 2.0
     update = updates.wait("config", lambda u: u.version == version + 1, UPDATE_TIMEOUT_S, since=0.0)
     assert update.config["safety"]["phi"] == 0.045
     assert api.http.get("/api/config").json()["safety"]["phi"] == 0.045
+
+
+def test_a_change_the_safety_service_refuses_is_reported_as_refused(api: ApiServer, bus: Bus) -> None:
+    version = api.http.get("/api/config").json()["version"]
+    with FakeSafety(bus, refuse=True) as safety:
+        wait_until(lambda: api.http.get("/api/status").json()["status_age_s"] is not None)
+        result = api.http.patch("/api/config/safety", json={"phi": 0.044}, headers=AUTH).json()
+    assert safety.refused >= 1 and result["applied"] is False and result["version"] == version + 1
+    assert "the safety service refused it" in result["detail"] and "its log says why" in result["detail"], result
 
 
 def test_unchanged_values_make_no_new_version(api: ApiServer) -> None:
@@ -415,6 +440,27 @@ def test_every_safety_field_maps_onto_the_config(api: ApiServer) -> None:
     assert sorted(result["changed"]) == ["safety.capsule_radii.torso", "safety.u_min"]
     safety = api.http.get("/api/config").json()["safety"]
     assert safety["u_min"] is None and safety["capsule_radii"]["robot"] == {"left_forearm": 0.061}
+
+
+def test_concurrent_patches_of_the_robot_radii_all_land(api: ApiServer) -> None:
+    """Each request's change is computed from the configuration it replaces, inside the writer's
+    lock: seven operators each enlarging one capsule at once leave seven overrides, none undone by
+    another's stale copy of the mapping."""
+    names = list(CAPSULE_NAMES)
+    clear = {"capsule_radii": {"robot": dict.fromkeys(names)}}
+    assert api.http.patch("/api/config/safety", json=clear, headers=AUTH).status_code == 200
+    start = threading.Barrier(len(names))
+
+    def enlarge(name: str) -> int:
+        with httpx.Client(base_url=api.url, timeout=10) as client:
+            start.wait()
+            body = {"capsule_radii": {"robot": {name: 0.12}}}
+            return client.patch("/api/config/safety", json=body, headers=AUTH).status_code
+
+    with ThreadPoolExecutor(len(names)) as pool:
+        assert list(pool.map(enlarge, names)) == [200] * len(names)
+    assert api.http.get("/api/config").json()["safety"]["capsule_radii"]["robot"] == dict.fromkeys(names, 0.12)
+    assert api.http.patch("/api/config/safety", json=clear, headers=AUTH).status_code == 200
 
 
 def test_retarget_fields_map_onto_the_config(api: ApiServer) -> None:

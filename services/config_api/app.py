@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -28,6 +30,22 @@ async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     finite = {float: lambda x: x if math.isfinite(x) else repr(x)}
     return JSONResponse({"detail": jsonable_encoder(exc.errors(), custom_encoder=finite)}, status_code=422)
+
+
+def _velocity_schema(schema: dict[str, Any], limits: list[float]) -> dict[str, Any]:
+    """``schema`` (the generated OpenAPI) with ``SafetyPatch``'s ``u_max`` / ``u_min`` bounded per joint
+    by the robot's ``joint_velocity_limits`` (rad/s) instead of the request model's static range, so
+    that the schema says what the writer accepts (:mod:`services.config_api.writer`)."""
+    fields = schema["components"]["schemas"]["SafetyPatch"]["properties"]
+    for name, bound in (("u_max", "maximum"), ("u_min", "minimum")):
+        field = fields[name]
+        for variant in field.get("anyOf", [field]):
+            if variant.get("type") == "array":
+                static = variant.pop("items")
+                sign = 1.0 if bound == "maximum" else -1.0
+                variant["prefixItems"] = [{**static, bound: sign * min(abs(static[bound]), limit)} for limit in limits]
+                variant["items"] = False
+    return schema
 
 
 def create_app(context: ApiContext) -> FastAPI:
@@ -53,4 +71,15 @@ def create_app(context: ApiContext) -> FastAPI:
             allow_methods=["GET", "PATCH", "POST"], allow_headers=["Authorization", "Content-Type", "X-Operator"],
         )
     app.add_middleware(BodySizeLimit, max_bytes=context.settings.max_body_bytes)
+    served = None
+
+    def openapi() -> dict[str, Any]:
+        nonlocal served
+        if served is None:
+            served = app.openapi_schema = _velocity_schema(get_openapi(
+                title=app.title, version=app.version, description=app.description, routes=app.routes),
+                context.writer.spec.velocity_limits())
+        return served
+
+    app.openapi = openapi  # type: ignore[method-assign]
     return app

@@ -29,6 +29,7 @@ from services.config_api.writer import ConfigWriter
 from shared.bus import Bus
 from shared.cli_args import add_bus_arguments, config_from_args
 from shared.config import StackConfig
+from shared.robot_spec import configured_robot_spec
 
 log = logging.getLogger("safemimic.config_api")
 #: Open event streams get this long to finish when the server stops (s).
@@ -60,7 +61,7 @@ def main(conf: StackConfig, environ: Mapping[str, str] = os.environ) -> None:
         print(f"config-api: generated the API token (kept in {token.origin}, mode 0600): {token.value}", flush=True)
     with Bus(conf.bus, conf.robot_id, SERVICE_NAME) as bus:
         link = BusLink(bus, store.published)
-        writer = ConfigWriter(store, link, conf.api.ack_timeout_s)
+        writer = ConfigWriter(store, link, conf.api.ack_timeout_s, configured_robot_spec(store.snapshot.config))
         context = ApiContext(settings=conf.api, store=store, link=link, writer=writer, token=token.value)
         version, config = store.published()
         link.publish(version, [], config)

@@ -36,5 +36,5 @@ async def calibrate(actor: Writer, context: Context) -> CalibrateResponse:
     if invalid:
         raise HTTPException(status.HTTP_409_CONFLICT, f"cannot calibrate: invalid angles {', '.join(invalid)}")
     theta = [float(x) for x in newest.message.theta]
-    result = await context.writer.change({RETARGET_FIELDS["theta_home"]: theta}, actor, "calibrate")
+    result = await context.writer.change(lambda _: {RETARGET_FIELDS["theta_home"]: theta}, actor, "calibrate")
     return CalibrateResponse(**result.model_dump(), theta_home=theta, human_age_s=age)

@@ -49,14 +49,14 @@ async def patch_safety(patch: SafetyPatch, actor: Writer, context: Context) -> C
     persisted with the next version, published, and the answer waits until the safety service
     reports it applied (``applied: true``) or ``api.ack_timeout_s`` passed (``applied: false``).
     """
-    return await context.writer.change(patch.changes(context.store.snapshot.config), actor, "patch safety")
+    return await context.writer.change(patch.changes, actor, "patch safety")
 
 
 @router.patch("/retarget", response_model=ChangeResponse, responses=WRITE_ERRORS)
 async def patch_retarget(patch: RetargetPatch, actor: Writer, context: Context) -> ChangeResponse:
     """Change the retargeting (paper eq. 2): ``S``, ``b``, ``q_home``, ``theta_home``, ``mirror``;
     validated, persisted, published and acknowledged like PATCH /api/config/safety."""
-    return await context.writer.change(patch.changes(), actor, "patch retarget")
+    return await context.writer.change(lambda _: patch.changes(), actor, "patch retarget")
 
 
 @router.get("/history", response_model=HistoryResponse, dependencies=[Depends(allow_read)], responses=READ_ERRORS, openapi_extra=READ_OPENAPI)
