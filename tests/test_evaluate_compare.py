@@ -124,9 +124,9 @@ def test_different_inputs_and_parameters_are_named() -> None:
 def test_a_summary_without_a_goal_s_figure_is_compared_without_the_goals() -> None:
     """An older evaluator's summary may lack a figure a goal reads: the figures still compare."""
     old = _suite(_run("walk", "facing"))
-    del old["runs"][0]["cbf"]["min_h_self"]
+    del old["runs"][0]["cbf"]["true_min_h_self"]
     text = Comparison(old, _suite(_run("walk", "facing"))).markdown()
-    assert "Not compared: a run of these summaries has no figure 'min_h_self'" in text
+    assert "Not compared: a run of these summaries has no figure 'true_min_h_self'" in text
     assert "| true contacts | sum | 10 | 10 |" in text
 
 

@@ -17,7 +17,7 @@ def run(clip: str = "clip", **cbf: Any) -> dict[str, Any]:
     fidelity = {"lag_ms": 75.0, "rms_true_free": 0.04, "rms_true_free_latency_floor": 0.02,
                 "direction_error_deg_p95": 12.0, "direction_error_deg_p95_at_target": 8.0}
     fidelity.update(cbf.pop("fidelity", {}))
-    metrics = {"contacts_robot_robot": 0, "min_h_self": 0.002, "robot_caused_contact_steps": 0,
+    metrics = {"contacts_robot_robot": 0, "min_h_self": 0.002, "true_min_h_self": 0.002, "robot_caused_contact_steps": 0,
                "robot_approach_steps": 0, "true_contacts_robot_human": 3, "true_contacts_fixed_bodies": 0,
                "nan_count": 0, "fidelity": fidelity, **cbf}
     return {"clip": clip, "placement": "facing", "cbf": metrics, "nominal": {"true_contacts_robot_human": 100},
@@ -38,7 +38,7 @@ def test_a_run_meeting_every_goal_meets_every_goal() -> None:
 def test_each_goal_fails_on_its_own_metric() -> None:
     bad = {
         "robot–robot contacts 0": {"contacts_robot_robot": 1},
-        "min self h ≥ −1 mm": {"min_h_self": -0.0011},
+        "min self h ≥ −1 mm": {"true_min_h_self": -0.0011},
         "robot-caused contact steps 0": {"robot_caused_contact_steps": 1},
         "robot approach steps 0": {"robot_approach_steps": 2},
         "true contacts ≤ 10 % of the run without the CBF": {"true_contacts_robot_human": 11},
@@ -53,6 +53,15 @@ def test_each_goal_fails_on_its_own_metric() -> None:
         for other in report:
             expected = (1, 1, ["bad (facing)"]) if other["goal"] == name else (2, 0, [])
             assert (other["met"], other["failed"], other["failing"]) == expected, (name, other)
+
+
+def test_the_self_barrier_goal_judges_the_simulated_joints_not_the_filters_own_view() -> None:
+    """The filter's q_cbf may keep h ≥ 0 while the robot, whose servos trail it, goes inside: the
+    goal is the robot's (``true_min_h_self``)."""
+    inside = run("inside", min_h_self=0.001, true_min_h_self=-0.0025)
+    filter_only = run("filter", min_h_self=-0.004, true_min_h_self=0.0005)
+    goal = row(goal_report([inside, filter_only]), "min self h ≥ −1 mm")
+    assert (goal["met"], goal["failed"], goal["failing"]) == (1, 1, ["inside (facing)"])
 
 
 def test_a_run_whose_floor_misses_the_goal_is_counted_beyond_the_floor() -> None:

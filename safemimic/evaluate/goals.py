@@ -7,7 +7,8 @@ whose floor alone already misses the goal is counted apart (``beyond_floor``): t
 met there by any command, so the run says nothing about the controller.
 
 Safety (a person faster than the robot), with the CBF, in every run: no robot–robot contact, the
-self barrier ≥ −1 mm, no robot-caused contact step, no approach step, true contacts at most 10 % of
+self barrier ≥ −1 mm at the simulated joints (``true_min_h_self``: the robot as it moved, not the
+filter's own q_cbf), no robot-caused contact step, no approach step, true contacts at most 10 % of
 the run without the CBF (0 where that run has none; floor: the steps with the person inside a
 body no imitation joint moves), no NaN. Imitation: lag ≤ latency + 20 ms (floor: the lag of a
 robot following the target seen one latency late as fast as its speed and acceleration bounds
@@ -57,7 +58,7 @@ FAILING_SHOWN = 6
 #: The goals, in the order the report lists them.
 GOALS: tuple[Goal, ...] = (
     Goal("robot–robot contacts 0", lambda r: r["cbf"]["contacts_robot_robot"] == 0),
-    Goal("min self h ≥ −1 mm", lambda r: r["cbf"]["min_h_self"] is None or r["cbf"]["min_h_self"] >= -1e-3),
+    Goal("min self h ≥ −1 mm", lambda r: r["cbf"]["true_min_h_self"] is None or r["cbf"]["true_min_h_self"] >= -1e-3),
     Goal("robot-caused contact steps 0", lambda r: r["cbf"]["robot_caused_contact_steps"] == 0),
     Goal("robot approach steps 0", lambda r: r["cbf"]["robot_approach_steps"] == 0),
     Goal("true contacts ≤ 10 % of the run without the CBF",
