@@ -182,6 +182,7 @@ def plot_summary(summary: dict[str, Any], path: Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
     import numpy as np
 
     runs = [r for r in summary["runs"] if "error" not in r]
@@ -200,32 +201,43 @@ def plot_summary(summary: dict[str, Any], path: Path) -> Path:
     ax.bar(x - 0.2, values("nominal", "true_contacts_robot_human"), 0.4, color="tab:red", label="without CBF")
     ax.bar(x + 0.2, values("cbf", "true_contacts_robot_human"), 0.4, color="tab:blue", label="with CBF")
     ax.bar(x + 0.2, values("cbf", "robot_caused_contact_steps"), 0.4, color="navy", label="with CBF, robot-caused")
-    ax.scatter(x + 0.2, values("cbf", "true_contacts_fixed_bodies"), marker="_", s=200, color="black", zorder=3,
-               label="with CBF, inside a fixed body (floor)")
+    fixed = values("cbf", "true_contacts_fixed_bodies")
+    ax.scatter(x + 0.2, np.where(fixed > 0, fixed, np.nan), marker="_", s=200, color="black", zorder=3,
+               label="with CBF, the person inside a fixed body (floor)")
     ax.set_title("contact steps with the true person", fontsize=10)
-    ax.legend(fontsize=7)
+    ax.set_ylabel("steps", fontsize=8)
+    ax.legend(fontsize=7, framealpha=0.7)
     panels = [
         (axes[0, 1], values("cbf", "true_min_clearance_human", 1e3), "min true clearance, CBF (mm)", True),
         (axes[0, 2], values("cbf", "true_min_h_self", 1e3), "min self h at q_sim, CBF (mm)", True),
-        (axes[1, 0], values("cbf", "fidelity", sub="lag_ms"), "lag behind the person, CBF (ms)", False),
-        (axes[1, 1], values("cbf", "fidelity", sub="rms_true_free"), "RMS q_sim − q_true, free steps (rad)", False),
-        (axes[1, 2], values("cbf", "fidelity", sub="direction_error_deg_p95"), "arm direction error p95 (deg)", False),
+        (axes[1, 0], values("cbf", "fidelity", sub="lag_ms"), "lag behind the person, CBF (ms, log scale)", False),
+        (axes[1, 1], values("cbf", "fidelity", sub="rms_true_free"), "RMS q_sim − q_true, free steps, CBF (rad)",
+         False),
+        (axes[1, 2], values("cbf", "fidelity", sub="direction_error_deg_p95"), "arm direction error p95, CBF (deg)",
+         False),
     ]
-    for ax, data, title, signed in panels:
+    units = ("mm", "mm", "ms", "rad", "deg")
+    for (ax, data, title, signed), unit in zip(panels, units, strict=True):
         ax.bar(x, data, 0.6, color=["tab:red" if signed and v < 0 else "tab:blue" for v in np.nan_to_num(data)])
         if signed:
             ax.axhline(0.0, color="black", lw=0.8)
-        ax.set_title(title, fontsize=10)
+        ax.set_title(title + ("; red: below 0" if signed else ""), fontsize=10)
+        ax.set_ylabel(unit, fontsize=8)
+    axes[1, 0].set_yscale("log")  # one walk-through's lag would flatten the goal and the floors
+    axes[1, 0].yaxis.set_major_locator(matplotlib.ticker.FixedLocator([20, 50, 80, 200, 500, 1000, 2000]))
+    axes[1, 0].yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    axes[1, 0].yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     floor = axes[1, 1].scatter(x, values("cbf", "fidelity", sub="rms_true_free_latency_floor"), marker="_", s=200,
                                color="black", zorder=3, label="latency floor")
-    axes[1, 1].legend(handles=[floor], fontsize=7)
+    rms_goal = axes[1, 1].axhline(0.05, color="tab:green", ls="--", lw=1.0, label="goal: 0.05 rad")
+    axes[1, 1].legend(handles=[floor, rms_goal], fontsize=7, framealpha=0.7)
     retargeting = axes[1, 2].scatter(x, values("cbf", "fidelity", sub="direction_error_deg_p95_at_target"),
                                      marker="_", s=200, color="black", zorder=3, label="at the target (retargeting)")
     seen_late = axes[1, 2].scatter(x, values("cbf", "fidelity", sub="direction_error_deg_p95_latency_floor"),
                                    marker="_", s=200, color="tab:orange", zorder=3,
                                    label="at the target seen one latency late")
     direction_goal = axes[1, 2].axhline(15.0, color="tab:green", ls="--", lw=1.0, label="goal: 15°")
-    axes[1, 2].legend(handles=[retargeting, seen_late, direction_goal], fontsize=7)
+    axes[1, 2].legend(handles=[retargeting, seen_late, direction_goal], fontsize=7, framealpha=0.7)
     s = summary["settings"]
     target = axes[1, 0].scatter(x, values("cbf", "fidelity", sub="lag_ms_target"), marker="_", s=200, color="black",
                                 zorder=3, label="of it, the target q_nom's (latency, point filter)")
@@ -233,7 +245,10 @@ def plot_summary(summary: dict[str, Any], path: Path) -> Path:
                                 color="tab:orange", zorder=3, label="the target seen late, within the speed and "
                                 "acceleration bounds (floor)")
     goal = axes[1, 0].axhline(s["latency_ms"] + 20.0, color="tab:green", ls="--", lw=1.0, label="goal: latency + 20 ms")
-    axes[1, 0].legend(handles=[target, limits, goal], fontsize=7)
+    axes[1, 0].legend(handles=[target, limits, goal], fontsize=7, framealpha=0.7)
+    for ax in (axes[0, 0], axes[1, 0], axes[1, 2]):  # room above the bars for the legend
+        bottom, top = ax.get_ylim()
+        ax.set_ylim(bottom, top * (4.0 if ax.get_yscale() == "log" else 1.5))
     for ax in axes.flat:
         ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
         ax.grid(alpha=0.3, axis="y")
