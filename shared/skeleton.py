@@ -5,8 +5,13 @@ A recording holds ``names`` (K canonical keypoint names, any order), ``t`` (T,) 
 ``source`` (text). Reading maps the file's keypoints into the canonical order of
 :data:`shared.names.KEYPOINT_NAMES`; keypoints absent from the file are NaN with confidence 0
 (missing, never invented: :func:`with_hip_centre_pelvis` is the one completion, which the replay
-source asks for). Extra keys in the file are ignored. A file whose person does not stand along z
-(a y-up file, axes swapped) is refused (:func:`_check_upright`).
+source asks for). Extra keys in the file are ignored, except those that look like another way of
+marking missing keypoints (:data:`_VALIDITY_KEYS`: ``valid``, ``mask``, ...), which are refused:
+evaluated as if absent, zeros meant as missing would be read as points at the origin. Refused as
+well: a file whose person does not stand along z (a y-up file, axes swapped:
+:func:`_check_upright`), whose limbs are not a person's in metres (:func:`_check_units`), with no
+keypoint in any frame, or whose ``t`` does not step by about 1/``fps`` seconds (``t`` in
+milliseconds or nanoseconds, a wrong ``fps``).
 """
 
 from __future__ import annotations
@@ -23,7 +28,15 @@ from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
 #: Segments used to check units: a human upper arm/forearm/thigh is 0.15–0.6 m long.
 _UNIT_CHECK_SEGMENTS = (("left_shoulder", "left_elbow"), ("right_shoulder", "right_elbow"), ("left_hip", "left_knee"))
 _MAX_SEGMENT_M = 1.0
+#: ... and at least this long (a small child's upper arm is ≈ 0.15 m): catches a file in km or
+#: scaled by mistake, whose "person" the robot would never meet.
+_MIN_SEGMENT_M = 0.08
 _MAX_COORD_M = 100.0
+#: The median step of ``t`` may differ from 1/``fps`` by at most this factor (frames dropped now and
+#: then, a rounded fps), not by the 1,000 of milliseconds.
+_MAX_PERIOD_RATIO = 2.0
+#: Keys that would mark missing keypoints in another format than ``conf`` and NaN.
+_VALIDITY_KEYS = ("valid", "mask", "visible", "visibility", "present", "missing")
 #: A recording is z up when its torso (pelvis or hip centre → shoulder centre) is within 60° of +z
 #: (cos ≥ 0.5) in the median frame: a person bending, turning or lying back now and then stays far
 #: above, a y-up file's torso lies along a horizontal axis (cos ≈ 0) and an upside-down one at −1.
@@ -89,6 +102,14 @@ def read_recording(path: str | Path) -> Recording:
     _require(bool(np.isfinite(t).all()) and bool((np.diff(t) > 0).all()), path, "'t' must be finite and strictly increasing")
     fps = float(np.asarray(arrays["fps"]).reshape(()))
     _require(np.isfinite(fps) and 0 < fps <= 10000, path, f"'fps' must be in (0, 10000], got {fps}")
+    if n_frames > 1:
+        step = float(np.median(np.diff(t)))
+        _require(1.0 / _MAX_PERIOD_RATIO <= step * fps <= _MAX_PERIOD_RATIO, path,
+                 f"'t' steps by {step:g} (median) but 'fps' {fps:g} means {1.0 / fps:g} s: 't' must be in seconds, "
+                 "'fps' the frames per second")
+    marks = [key for key in _VALIDITY_KEYS if key in arrays]
+    _require(not marks, path, f"key {marks[0]!r} is not part of the format: mark a missing keypoint with NaN in 'xyz' "
+             "or 0 in 'conf' (T, K)" if marks else "")
 
     conf_in = np.ones((n_frames, len(names))) if "conf" not in arrays else np.asarray(arrays["conf"], dtype=np.float64)
     _require(conf_in.shape == (n_frames, len(names)), path, f"'conf' must have shape ({n_frames}, {len(names)}), got {conf_in.shape}")
@@ -100,6 +121,7 @@ def read_recording(path: str | Path) -> Recording:
     index = [KEYPOINT_INDEX[n] for n in names]
     canonical_xyz[:, index] = xyz
     canonical_conf[:, index] = np.where(finite.all(axis=-1), conf_in, 0.0)
+    _require(bool((canonical_conf > 0).any()), path, "no keypoint in any frame (every point NaN or of confidence 0)")
     _check_units(canonical_xyz, path)
     _check_upright(canonical_xyz, path)
     _require(bool((np.abs(xyz[finite]) < _MAX_COORD_M).all()), path, f"coordinates beyond {_MAX_COORD_M} m from the origin")
@@ -109,13 +131,15 @@ def read_recording(path: str | Path) -> Recording:
 
 
 def _check_units(xyz: np.ndarray, path: Path) -> None:
-    """Limb lengths must be human in metres (catches centimetre or millimetre files)."""
+    """Limb lengths must be human in metres, within [:data:`_MIN_SEGMENT_M`, :data:`_MAX_SEGMENT_M`]
+    (median over the frames: catches centimetre or millimetre files, and a person scaled to a toy)."""
     for a, b in _UNIT_CHECK_SEGMENTS:
         lengths = np.linalg.norm(xyz[:, KEYPOINT_INDEX[a]] - xyz[:, KEYPOINT_INDEX[b]], axis=-1)
         lengths = lengths[np.isfinite(lengths)]
         if lengths.size:
             median = float(np.median(lengths))
-            _require(median <= _MAX_SEGMENT_M, path, f"{a}–{b} is {median:.2f} long: units must be metres")
+            _require(_MIN_SEGMENT_M <= median <= _MAX_SEGMENT_M, path,
+                     f"{a}–{b} is {median:.3g} long: units must be metres (a person's is 0.15–0.6 m)")
 
 
 def hip_centre(xyz: np.ndarray) -> np.ndarray:

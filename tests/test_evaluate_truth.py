@@ -71,6 +71,19 @@ def test_true_person_is_the_recording_unfiltered_and_interpolated(tmp_path: Path
     assert perceived.counters.rejected_jumps > 0
 
 
+def test_a_keypoint_missing_in_the_next_frame_leaves_an_exact_frame_time_valid_and_finite(tmp_path: Path) -> None:
+    """At a frame's own time the next frame has weight 0: a wrist missing there (NaN) must not turn
+    the present wrist into NaN while it counts as valid (the true person's angles would read it as
+    a point at the origin)."""
+    xyz = raise_recording()
+    xyz[31, WRIST] = np.nan
+    conf = evaluation_config(str(write_recording(tmp_path / "gap.npz", xyz)), None, "recorded", None)
+    points, valid = interpolate_skeleton(open_input(conf), np.array([1.0, 1.0 + 0.5 / 30, 31 / 30]))
+    assert valid[0, WRIST] and not valid[1, WRIST] and not valid[2, WRIST]
+    np.testing.assert_allclose(points[0], xyz[30], atol=1e-12)
+    assert np.isnan(points[1:, WRIST]).all() and np.isfinite(points[valid]).all()
+
+
 def test_perceived_person_lags_the_true_one_by_exactly_the_latency(tmp_path: Path) -> None:
     path = write_recording(tmp_path / "raise.npz", raise_recording(1.0))
     conf = evaluation_config(str(path), None, "recorded", None)

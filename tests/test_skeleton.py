@@ -62,6 +62,14 @@ def test_missing_keypoints_are_marked_not_invented(tmp_path) -> None:
         ({"fps": -1.0}, "'fps'"),
         ({"xyz": np.stack([standing_pose()[:, [0, 2, 1]] * (1, 1, -1)] * 3)}, "does not stand along z"),  # y up
         ({"xyz": np.stack([standing_pose() * (1, 1, -1)] * 3)}, "does not stand along z"),  # upside down
+        ({"xyz": np.stack([standing_pose() * 0.01] * 3)}, "units must be metres"),  # a toy: never near the robot
+        ({"xyz": np.full((3, 15, 3), np.nan)}, "no keypoint in any frame"),
+        ({"conf": np.zeros((3, 15))}, "no keypoint in any frame"),
+        ({"t": np.arange(3) / 30 * 1000}, "'t' must be in seconds"),  # milliseconds
+        ({"t": np.arange(3) * 33_333_333}, "'t' must be in seconds"),  # integer nanoseconds
+        ({"fps": 1.0}, "'fps' 1 means 1 s"),  # a wrong fps for 30 Hz times
+        ({"valid": np.ones((3, 15), bool)}, "key 'valid' is not part of the format"),
+        ({"mask": np.ones((3, 15), bool)}, "mark a missing keypoint with NaN in 'xyz' or 0 in 'conf'"),
     ],
 )
 def test_bad_files_give_clear_errors(tmp_path, change, message) -> None:

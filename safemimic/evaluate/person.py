@@ -212,8 +212,10 @@ def interpolate_skeleton(source: EvaluationInput, t: np.ndarray) -> tuple[np.nda
         upper = lower = np.zeros(t.shape, np.intp)
     span = times[upper] - times[lower]
     w = np.clip(np.divide(t - times[lower], span, out=np.zeros_like(t), where=span > 0), 0.0, 1.0)
-    points = (1.0 - w)[:, None, None] * xyz[lower] + w[:, None, None] * xyz[upper]
-    # a neighbour with weight 0 does not matter (the last frame held, an exact frame time)
+    # a neighbour with weight 0 does not matter (the last frame held, an exact frame time): a missing
+    # one (NaN) is blended as 0, never as 0 · NaN = NaN in a point counted valid
+    filled = np.where(present[..., None], xyz, 0.0)
+    points = (1.0 - w)[:, None, None] * filled[lower] + w[:, None, None] * filled[upper]
     valid = (present[lower] | (w[:, None] == 1.0)) & (present[upper] | (w[:, None] == 0.0))
     points[~valid] = np.nan
     return points, valid
