@@ -5,6 +5,7 @@ the lag estimate recovers a known delay. Real perception, MuJoCo, Pinocchio and 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import mujoco
@@ -28,6 +29,7 @@ from shared.config import ExecutorConfig
 from shared.names import CAPSULE_NAMES, KEYPOINT_INDEX, KEYPOINT_NAMES
 from shared.robot_spec import configured_robot_spec, default_robot_spec_path, load_robot_spec
 from tests.support.team import G1_MJCF
+from tests.test_evaluate_compare import safemimic
 from tests.test_executor_sim import person_capsules
 
 GAINS = PDGains.from_config(ExecutorConfig())
@@ -82,6 +84,21 @@ def test_a_keypoint_missing_in_the_next_frame_leaves_an_exact_frame_time_valid_a
     assert valid[0, WRIST] and not valid[1, WRIST] and not valid[2, WRIST]
     np.testing.assert_allclose(points[0], xyz[30], atol=1e-12)
     assert np.isnan(points[1:, WRIST]).all() and np.isfinite(points[valid]).all()
+
+
+def test_a_recording_without_a_body_part_says_how_much_of_the_person_it_shows(tmp_path: Path) -> None:
+    """No left wrist in half the frames: the left forearm of the true person is missing there, so
+    contacts with it cannot be counted; metrics.json says the share of steps with the whole person
+    and the command warns below 90 %."""
+    xyz = raise_recording(2.0)
+    xyz[30:, KEYPOINT_INDEX["left_wrist"]] = np.nan
+    path = write_recording(tmp_path / "no_wrist.npz", xyz)
+    out = tmp_path / "out"
+    done = safemimic("evaluate", "--skeleton", str(path), "--placement", "side-by-side", "--quiet", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    complete = json.loads((out / "metrics.json").read_text())["input"]["true_person_complete"]
+    assert 0.4 < complete < 0.6, complete
+    assert "the recording has the whole person in only" in done.stderr
 
 
 def test_perceived_person_lags_the_true_one_by_exactly_the_latency(tmp_path: Path) -> None:

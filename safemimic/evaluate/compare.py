@@ -48,7 +48,8 @@ SETTINGS = ("latency_ms", "latency_jitter_ms", "depth_noise_m", "dropout", "drop
             "seconds")
 #: What a run's ``input`` records about the run itself (or the suite's inputs, :data:`SETTINGS`) rather
 #: than the stack's parameters.
-_PER_RUN = frozenset({"source", "placement", "frames", "fps", "control_steps", "free_steps", *SETTINGS})
+_PER_RUN = frozenset({"source", "placement", "frames", "fps", "control_steps", "free_steps", "true_person_complete",
+                      *SETTINGS})
 
 
 class CompareError(SafemimicError, ValueError):

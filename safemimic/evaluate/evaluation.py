@@ -58,7 +58,8 @@ class Evaluation:
                                self.human.in_view(self.cbf.human), limits_floor),
             "nominal": run_metrics(self.nominal, free, self.person, phi, mirror, at_target, latency,
                                    self.human.in_view(self.nominal.human), limits_floor),
-            "input": input_metrics(self.conf, self.source, self.human, self.cbf, self.placement, self.camera),
+            "input": input_metrics(self.conf, self.source, self.human, self.cbf, self.placement, self.camera,
+                                   float(self.person.capsule_valid.all(axis=1).mean())),
         }
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from safemimic.evaluate.evaluation import evaluate, evaluation_config, write_outputs
-from safemimic.evaluate.metrics import RUN_KEYS
+from safemimic.evaluate.metrics import COMPLETE_WARNING, RUN_KEYS
 from safemimic.evaluate.person import DEFAULT_LATENCY_S, CameraModel, latency_text
 from safemimic.evaluate.progress import ProgressBar
 from services.executor.mujoco.model import SimModelError
@@ -179,6 +179,11 @@ def run(args: argparse.Namespace) -> int:
           f"{metrics['input']['control_steps']} control steps, robot model {metrics['input']['robot_model']}, "
           f"camera latency {latency_text(metrics['input'])}")
     print(summary_table(metrics))
+    complete = metrics["input"]["true_person_complete"]
+    if complete < COMPLETE_WARNING:
+        print(f"safemimic evaluate: warning: the recording has the whole person in only {100 * complete:.0f} % of the "
+              "steps (a body part missing from its frames): contacts with what it does not show are not counted",
+              file=sys.stderr)
     print(f"wrote {args.out}/metrics.json, contacts.json, joints.png, barriers.png, snapshot.png"
           + (f"; recording {rrd} (open: rerun {rrd})" if rrd is not None else ""))
     return 0

@@ -221,10 +221,18 @@ def limits_floor_joints(person: TruePerson, safety: SafetyConfig, latency_s: flo
     return limited_follower(delayed(person.q_true, round(latency_s / dt)), dt, safety.u_max, safety.accel_max)
 
 
+#: Below this share of the steps with the whole true person, the contact figures miss part of them.
+COMPLETE_WARNING = 0.9
+
+
 def input_metrics(
-    conf: StackConfig, source: EvaluationInput, human: HumanTrack, cbf: Episode, placement: str, camera: CameraModel
+    conf: StackConfig, source: EvaluationInput, human: HumanTrack, cbf: Episode, placement: str, camera: CameraModel,
+    person_complete: float,
 ) -> dict[str, Any]:
-    """What was evaluated: source, duration, robot, the safety parameters, perception counters."""
+    """What was evaluated: source, duration, robot, the safety parameters, perception counters, and
+    ``true_person_complete`` (``person_complete``: the share of the control steps at which every
+    capsule of the true person exists; where one does not, the recording does not say where that
+    body part was, and no contact with it can be counted)."""
     c = human.counters
     s = conf.safety
     return {
@@ -256,6 +264,7 @@ def input_metrics(
         "self_pairs": int(np.count_nonzero(cbf.pairs.is_self)),
         "human_pairs": int(np.count_nonzero(~cbf.pairs.is_self)),
         "free_steps": int(np.count_nonzero(free_steps(cbf))),
+        "true_person_complete": round(person_complete, 6),
         "home_contacts_pressed_only": [f"{a}|{b}" for a, b in cbf.home_contacts],
         "perception": {
             "rejected_jumps": c.rejected_jumps,
