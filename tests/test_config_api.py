@@ -235,6 +235,24 @@ def test_writes_need_the_token(api: ApiServer, method: str, path: str, body: dic
 
 
 @pytest.mark.parametrize(
+    ("content", "headers"),
+    [(b"{gamma", {}), (b'{"gamma": 3.0}', {"X-Operator": "a/b"}), (b'{"gamma": 3.0}', {"Authorization": "Basic " + TOKEN}),
+     (b"x" * 70_000, {}), (b'{"gamma": 3.0}', {"Authorization": "Bearer " + TOKEN[:-1]})],
+)
+def test_a_write_without_the_token_is_401_before_its_body_or_headers_are_looked_at(
+        api: ApiServer, content: bytes, headers: dict) -> None:
+    """Malformed JSON, a bad X-Operator header or an oversized body: without the token, 401 (not the
+    422 or 413 a writer would get), so a client that may not write learns nothing of the validators."""
+    response = api.http.patch("/api/config/safety", content=content,
+                              headers={"Content-Type": "application/json", **headers})
+    assert response.status_code == 401, response.text
+    assert response.headers["www-authenticate"] == "Bearer"
+    with_token = api.http.patch("/api/config/safety", content=content,
+                                headers={"Content-Type": "application/json", **headers, **AUTH})
+    assert with_token.status_code != 401, with_token.text  # the same request from a writer gets past the token
+
+
+@pytest.mark.parametrize(
     ("path", "body", "field"),
     [
         ("/api/config/safety", {"gamma": -1.0}, "gamma"),

@@ -14,7 +14,7 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from services.config_api.dependencies import ApiContext
-from services.config_api.limits import BodySizeLimit
+from services.config_api.limits import BodySizeLimit, WritesNeedTheToken
 from services.config_api.routers import calibrate, config, console, status
 from services.config_api.routers.console import STATIC_DIR
 from services.config_api.store import StoreError
@@ -71,6 +71,7 @@ def create_app(context: ApiContext) -> FastAPI:
             allow_methods=["GET", "PATCH", "POST"], allow_headers=["Authorization", "Content-Type", "X-Operator"],
         )
     app.add_middleware(BodySizeLimit, max_bytes=context.settings.max_body_bytes)
+    app.add_middleware(WritesNeedTheToken, token=context.token)  # outermost (added last): no body read without it
     served = None
 
     def openapi() -> dict[str, Any]:

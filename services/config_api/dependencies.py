@@ -49,14 +49,21 @@ _bearer = HTTPBearer(
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)]
 
 
+def token_matches(presented: str | None, token: str) -> bool:
+    """Whether the bearer token ``presented`` is ``token`` (constant time; None: none presented)."""
+    return presented is not None and hmac.compare_digest(presented.encode(), token.encode())
+
+
 def _token_ok(credentials: HTTPAuthorizationCredentials | None, token: str) -> bool:
-    return credentials is not None and hmac.compare_digest(credentials.credentials.encode(), token.encode())
+    return token_matches(None if credentials is None else credentials.credentials, token)
+
+
+UNAUTHORIZED = "a valid bearer token is required"
+UNAUTHORIZED_HEADERS = {"WWW-Authenticate": "Bearer"}
 
 
 def _unauthorized() -> HTTPException:
-    return HTTPException(
-        status.HTTP_401_UNAUTHORIZED, "a valid bearer token is required", headers={"WWW-Authenticate": "Bearer"}
-    )
+    return HTTPException(status.HTTP_401_UNAUTHORIZED, UNAUTHORIZED, headers=UNAUTHORIZED_HEADERS)
 
 
 def _is_loopback(request: Request) -> bool:
