@@ -388,9 +388,10 @@ class G1Mode(str, Enum):
 
 
 class G1ArmSdkJoints(str, Enum):
-    """Which upper-body motors an ``rt/arm_sdk`` frame commands: the imitation joints only (the
-    others keep the balance controller's values) or all 17 (the others held at the pose measured
-    when the ramp-in began: for firmware that lets unset upper-body slots go limp)."""
+    """Which upper-body motors an ``rt/arm_sdk`` frame commands: all 17 (the default, as Unitree's
+    arm example does: the others than the imitation joints held at the pose measured when the
+    ramp-in began) or the imitation joints only (the others left unset, for firmware that keeps the
+    balance controller's values there at full blend weight: seen on a gantry first)."""
 
     IMITATION = "imitation"
     UPPER_BODY = "upper_body"
@@ -417,9 +418,11 @@ class G1Config(_Section):
 
     mode: G1Mode = G1Mode.ARM_SDK
     arm_sdk_joints: G1ArmSdkJoints = Field(
-        default=G1ArmSdkJoints.IMITATION,
-        description="arm_sdk: imitation (send only the imitation joints; the others keep the balance controller's "
-        "values) | upper_body (also hold the other upper-body motors at the pose measured when the ramp began)",
+        default=G1ArmSdkJoints.UPPER_BODY,
+        description="arm_sdk: upper_body (all 17 upper-body motors, as Unitree's arm example; the others than the "
+        "imitation joints held at the pose measured when the ramp began) | imitation (only the imitation joints: "
+        "whether the firmware keeps the balance controller's values for the unset slots at full blend weight, or "
+        "lets them go limp, must be seen on a gantry first)",
     )
     network_interface: str | None = Field(
         default=None, pattern=r"^[A-Za-z0-9_.:\-]{1,64}$",

@@ -26,7 +26,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from shared.config import CONFIG_DIR, StackConfig, resolve_config_path
+from shared.config import CONFIG_DIR, ExecutorBackend, G1Mode, StackConfig, resolve_config_path
 from shared.errors import SafemimicError
 from shared.names import CAPSULE_NAMES, IMITATION_JOINT_NAMES
 
@@ -275,6 +275,16 @@ class RobotSpec(BaseModel):
         """A copy of this spec driving another model file (e.g. the real G1 MJCF in tests)."""
         return self.model_copy(update={"model": str(model)})
 
+    def within(self, ranges: dict[str, tuple[float, float]]) -> RobotSpec:
+        """A copy of this spec whose ``limits`` are also within ``ranges`` (joint → (min, max) rad): each
+        joint's range the intersection of both (a joint ``limits`` does not list: ``ranges``' own; the
+        model's range still bounds it, :class:`~services.safety.kinematics.RobotKinematics`)."""
+        limits = dict(self.limits)
+        for joint, (lo, hi) in ranges.items():
+            own = limits.get(joint, (-math.inf, math.inf))
+            limits[joint] = (max(own[0], lo), min(own[1], hi))
+        return self.model_copy(update={"limits": limits})
+
 
 def default_robot_spec_path() -> Path:
     """The shipped G1 robot spec, ``config/robots/g1.yaml`` of this checkout/package."""
@@ -319,6 +329,17 @@ def _parse_robot_spec(path: Path, text: str) -> RobotSpec:
 
 
 def configured_robot_spec(conf: StackConfig) -> RobotSpec:
-    """The robot description named by ``robot.spec``, with ``robot.model`` overriding its model."""
+    """The robot description named by ``robot.spec``, with ``robot.model`` overriding its model.
+
+    Driving a real G1 in its ``arm_sdk`` mode (``executor.backend: g1``, ``executor.g1.mode:
+    arm_sdk``), the waist's range is also ``executor.g1.arm_sdk_waist_range`` (leaning over the
+    running balance controller tips the robot): here, so that every service of the stack reads the
+    same range — the safety layer plans and retargets within the range the executor drives, instead
+    of up to 0.3 rad beyond it unnoticed (the executor clipping what the barriers were computed for)."""
     spec = load_robot_spec(resolve_config_path(conf.robot.spec, CONFIG_DIR))
-    return spec.with_model(resolve_config_path(conf.robot.model, CONFIG_DIR)) if conf.robot.model else spec
+    if conf.robot.model:
+        spec = spec.with_model(resolve_config_path(conf.robot.model, CONFIG_DIR))
+    g1 = conf.executor.g1
+    if conf.executor.backend is ExecutorBackend.G1 and g1.mode is G1Mode.ARM_SDK:
+        spec = spec.within(g1.arm_sdk_waist_range)
+    return spec

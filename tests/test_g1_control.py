@@ -12,8 +12,9 @@ from services.executor.g1.errors import G1StartError
 from services.executor.g1.state import G1State
 from services.executor.g1.frames import lowcmd_crc
 from services.executor.g1.layout import ARM_SDK_HOLD_GAINS, G1_JOINTS, LOWCMD_HOLD_GAINS, WEIGHT_SLOT
-from shared.config import G1Config
-from shared.robot_spec import default_robot_spec_path, load_robot_spec
+from services.safety.kinematics import RobotKinematics
+from shared.config import G1Config, load_config
+from shared.robot_spec import configured_robot_spec, default_robot_spec_path, load_robot_spec
 
 SPEC = load_robot_spec(default_robot_spec_path())
 PERIOD = 0.002
@@ -75,7 +76,7 @@ def targets(frames: list[np.ndarray], slots: np.ndarray = SLOTS) -> np.ndarray:
 
 
 def test_idle_frames_carry_zero_weight_and_the_measured_pose() -> None:
-    robot = Robot()
+    robot = Robot(conf(arm_sdk_joints="imitation"))
     frames = robot.run(0.05)  # no command yet
     assert robot.ctl.phase is Phase.IDLE
     f = frames[-1]
@@ -94,8 +95,11 @@ def test_idle_frames_carry_zero_weight_and_the_measured_pose() -> None:
     np.testing.assert_allclose(m["kd"][SLOTS], 1.5)
 
 
-def test_upper_body_option_also_holds_the_other_upper_body_motors() -> None:
-    robot = Robot(conf(arm_sdk_joints="upper_body"))
+def test_by_default_every_upper_body_motor_is_commanded_the_others_held() -> None:
+    """As Unitree's arm example: an rt/arm_sdk frame sets all 17 upper-body slots, none left at mode 0,
+    kp 0, kd 0 for the firmware to blend in at full weight (``arm_sdk_joints: imitation`` does)."""
+    assert G1Config().arm_sdk_joints.value == "upper_body"
+    robot = Robot()
     m = robot.run(0.05)[-1]["motor_cmd"]
     np.testing.assert_array_equal(m["mode"][:29], [0] * 12 + [1] * 17)  # upper body only, legs untouched
     assert (m["mode"][29:] == 0).all() and (m["kp"][:12] == 0).all()
@@ -340,8 +344,44 @@ def test_arm_sdk_limits_the_imitated_waist_by_default() -> None:
         np.testing.assert_allclose(targets(frames[-1:], SLOTS[:2])[0], lean[:2], atol=1e-6)
 
 
+@pytest.mark.parametrize(("backend", "mode", "limited"), [("g1", "arm_sdk", True), ("g1", "lowcmd", False),
+                                                         ("mujoco", "arm_sdk", False)])
+def test_every_service_reads_the_arm_sdk_waist_range_from_the_robot_description(backend: str, mode: str,
+                                                                                limited: bool) -> None:
+    """Driving the real G1 in arm_sdk mode, the configured robot description holds the executor's
+    waist range, so the safety layer's joint limits (and its retargeting's clip) are the range the
+    executor drives, not up to the hardware's ±0.52 rad beyond it."""
+    conf = load_config(environ={}, overrides={"executor": {"backend": backend, "g1": {"mode": mode}}})
+    kinematics = RobotKinematics(configured_robot_spec(conf))
+    waist = [kinematics.joint_names.index(j) for j in ("waist_roll_joint", "waist_pitch_joint")]
+    ranges = [conf.executor.g1.arm_sdk_waist_range[j] for j in ("waist_roll_joint", "waist_pitch_joint")]
+    within = [(kinematics.q_min[i], kinematics.q_max[i]) for i in waist]
+    if limited:
+        assert within == [tuple(r) for r in ranges]
+        controller = G1Controller(configured_robot_spec(conf), conf.executor.g1, PERIOD)
+        np.testing.assert_allclose([controller.lower[:2], controller.upper[:2]], np.array(within).T)
+    else:
+        assert all(lo < -0.5 and hi > 0.5 for lo, hi in within), within
+    arms = [i for i in range(8) if i not in waist]
+    plain = RobotKinematics(load_robot_spec(default_robot_spec_path()))
+    np.testing.assert_array_equal(kinematics.q_min[arms], plain.q_min[arms])
+
+
 @pytest.mark.parametrize("bad", [{"waist_yaw_joint": (-0.1, 0.1)}, {"waist_pitch_joint": (0.1, 0.2)},
                                  {"waist_roll_joint": (0.1, -0.1)}])
 def test_arm_sdk_waist_range_is_validated(bad) -> None:
     with pytest.raises(ValueError):
         G1Config(arm_sdk_waist_range=bad)
+
+
+def test_the_executor_warns_when_only_its_flag_says_g1(caplog: pytest.LogCaptureFixture) -> None:
+    """``--backend g1`` on the executor alone: the safety service, reading the file, would plan with
+    the description's waist range; the executor says what to set."""
+    from services.executor.service import _warn_if_only_here
+
+    g1 = load_config(environ={}, overrides={"executor": {"backend": "g1"}})
+    with caplog.at_level("WARNING", logger="safemimic.executor"):
+        _warn_if_only_here(g1, g1)
+        assert not caplog.records
+        _warn_if_only_here(g1, load_config(environ={}))
+    assert len(caplog.records) == 1 and "put executor.backend: g1 in the configuration" in caplog.text

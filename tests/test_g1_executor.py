@@ -18,7 +18,7 @@ import pytest
 pytest.importorskip("cyclonedds", reason="CycloneDDS's Python package is not installed: pip install 'safemimic[g1]'")
 
 from services.executor.g1.fake_robot import BALANCE_POSE  # noqa: E402
-from services.executor.g1.layout import WEIGHT_SLOT  # noqa: E402
+from services.executor.g1.layout import ARM_SDK_HOLD_GAINS, ARM_SDK_SLOTS, WEIGHT_SLOT  # noqa: E402
 from shared.bus import Bus  # noqa: E402
 from shared.config import BusConfig  # noqa: E402
 from shared.messages import JointCommand  # noqa: E402
@@ -141,10 +141,11 @@ def test_arm_sdk_ramps_follows_and_ramps_out_on_lost_state_and_commands(spawn, t
     r = load(record)
     assert r["crc_ok"].all() and (r["topic"] == 0).all()
     assert (r["mode_machine"] == 5).all() and (r["mode_pr"] == 0).all()
-    imitation_only = np.isin(np.arange(29), SLOTS)
-    assert (r["mode"][:, :29] == imitation_only).all(), "the 8 imitation joints only"
-    assert (r["kp"][:, :29][:, ~imitation_only] == 0).all() and (r["mode"][:, 29:] == 0).all()
+    upper_body = np.isin(np.arange(29), ARM_SDK_SLOTS)
+    assert (r["mode"][:, :29] == upper_body).all(), "the 17 upper-body motors, the legs left to the robot"
+    assert (r["kp"][:, :29][:, ~upper_body] == 0).all() and (r["mode"][:, 29:] == 0).all()
     np.testing.assert_allclose(r["kp"][:, SLOTS], 60.0)
+    np.testing.assert_allclose(r["kp"][:, [s for s in ARM_SDK_SLOTS if s not in SLOTS]], ARM_SDK_HOLD_GAINS[0])
     t, w = r["t"], r["q"][:, WEIGHT_SLOT].astype(float)
     # kd as configured while commands come; once they went stale the service holds the robot at rest,
     # damped as in a protective stop (executor.g1.stop_damping, 2)
@@ -266,5 +267,5 @@ def test_dry_run_sends_nothing_and_prints_checked_frames(spawn, tmp_path: Path) 
     assert counters["robot"]["dry_run"] and counters["robot"]["frames_sent"] == 0
     assert counters["robot"]["frames_printed"] >= 3
     assert frame["dry_run"] and frame["topic"] == "rt/arm_sdk" and frame["checked"]
-    assert frame["commanded_slots"] == SLOTS and set(frame["imitation"]) == set(SPEC.imitation_joints)
+    assert frame["commanded_slots"] == list(ARM_SDK_SLOTS) and set(frame["imitation"]) == set(SPEC.imitation_joints)
     assert "DRY RUN" in "".join(service.output)

@@ -46,7 +46,7 @@ from services.executor.contacts import ContactTally
 from services.executor.base import Executor
 from shared.bus import Bus, Latest, Received
 from shared.cli_args import add_bus_arguments, config_from_args
-from shared.config import ExecutorBackend, StackConfig
+from shared.config import ExecutorBackend, G1Mode, StackConfig
 from shared.messages import HumanState, JointCommand, JointState
 from shared.robot_spec import configured_robot_spec
 from shared.schedule import FixedRateSchedule
@@ -279,6 +279,20 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     return parser
 
 
+def _warn_if_only_here(conf: StackConfig, shared_conf: StackConfig) -> None:
+    """Warn when the real G1 in arm_sdk mode was chosen by this command's ``--backend`` flag alone:
+    the other services read ``shared_conf`` (the file and the environment), so the safety layer
+    would plan with the robot description's waist range, not ``executor.g1.arm_sdk_waist_range``
+    (:func:`~shared.robot_spec.configured_robot_spec`)."""
+    g1 = conf.executor.g1
+    if (conf.executor.backend is ExecutorBackend.G1 and g1.mode is G1Mode.ARM_SDK and g1.arm_sdk_waist_range
+            and shared_conf.executor.backend is not ExecutorBackend.G1):
+        log.warning("--backend g1 is set for this executor only: put executor.backend: g1 in the configuration every "
+                    "service reads (or SAFEMIMIC__EXECUTOR__BACKEND=g1 for each), so that the safety layer plans within "
+                    "executor.g1.arm_sdk_waist_range %s as this executor drives the waist",
+                    {joint: list(bounds) for joint, bounds in g1.arm_sdk_waist_range.items()})
+
+
 def run(args: argparse.Namespace) -> int:
     extra: dict[str, Any] = {}
     if args.robot_model:
@@ -301,6 +315,7 @@ def run(args: argparse.Namespace) -> int:
         print("--duration must be > 0", file=sys.stderr)
         return 2
     conf = config_from_args(args, extra)
+    _warn_if_only_here(conf, config_from_args(args))
     with stop_on_signals() as stop:  # a ConfigError, RobotSpecError, ExecutorStartError: shared.entrypoint, exit 2
         counters = main(conf, stop, args.duration)
     print(json.dumps({"event": "stopped", "service": SERVICE_NAME, **counters}), flush=True)

@@ -134,11 +134,12 @@ class G1Controller:
                 lo, hi = max(lo, spec.limits[name][0]), min(hi, spec.limits[name][1])
             if conf.mode is G1Mode.ARM_SDK and name in conf.arm_sdk_waist_range:
                 w_lo, w_hi = conf.arm_sdk_waist_range[name]
-                if w_lo > lo or w_hi < hi:
-                    log.warning("arm_sdk: %s imitated within [%.2f, %.2f] rad (executor.g1.arm_sdk_waist_range: leaning "
-                                "over the balance controller tips the robot); the robot description allows [%.2f, %.2f]: "
-                                "set the same range in its limits: so the safety layer plans with it",
-                                name, max(lo, w_lo), min(hi, w_hi), lo, hi)
+                wider = w_lo > lo or w_hi < hi  # the description the safety layer reads allows more
+                log.log(logging.WARNING if wider else logging.INFO,
+                        "arm_sdk: %s imitated within [%.2f, %.2f] rad (executor.g1.arm_sdk_waist_range: leaning over "
+                        "the balance controller tips the robot)%s", name, max(lo, w_lo), min(hi, w_hi),
+                        f"; the robot description given allows [{lo:.2f}, {hi:.2f}]: the safety layer plans within "
+                        "this range only when it reads it too (shared.robot_spec.configured_robot_spec)" if wider else "")
                 lo, hi = max(lo, w_lo), min(hi, w_hi)
             if not lo < hi:
                 raise G1StartError(f"{name}: no admissible range left ({lo:.3f} ≥ {hi:.3f}) after position_margin "
