@@ -221,7 +221,6 @@ class TargetPath(str, Enum):
 
 
 PositiveJointVector = Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
-NonNegativeJointVector = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
 
 
 class SafetyConfig(_Section):
@@ -412,6 +411,24 @@ class G1LockedWaistPolicy(str, Enum):
     ARMS_ONLY = "arms_only"
 
 
+#: Upper bounds of the G1 executor's per-joint settings, so that no configuration (a typo, a copied
+#: value from another robot) commands the real robot beyond what its motors are meant for: a stiffness
+#: of 500 N·m/rad is over twice the stiffest of Unitree's own tables (the knees' 200 in its walking
+#: policies), a damping of 20 N·m·s/rad ten times its arms', and 37 rad/s is the motors' rated speed
+#: (``joint_velocity_limits`` of config/robots/g1.yaml), which also bounds the jump the last check of
+#: a frame accepts (derived from ``max_speed``).
+G1_MAX_KP, G1_MAX_KD, G1_MAX_SPEED = 500.0, 20.0, 37.0
+#: The shortest hand-over ramps (s): a weight stepping 0 → 1 in a few ticks snaps the arms between
+#: the balance controller's pose and ours.
+G1_MIN_RAMP_S = 0.25
+
+
+_PerJoint = Field(min_length=N_JOINTS, max_length=N_JOINTS)
+G1Stiffness = Annotated[list[Annotated[float, Field(gt=0, le=G1_MAX_KP)]], _PerJoint]
+G1Damping = Annotated[list[Annotated[float, Field(ge=0, le=G1_MAX_KD)]], _PerJoint]
+G1Speed = Annotated[list[Annotated[float, Field(gt=0, le=G1_MAX_SPEED)]], _PerJoint]
+
+
 class G1Config(_Section):
     """The Unitree G1 hardware executor (``--backend g1``, architecture §11). Vectors are per imitation
     joint, in the robot description's order."""
@@ -432,22 +449,22 @@ class G1Config(_Section):
     dry_run: bool = Field(default=False, description="read rt/lowstate, build and check every frame, print them, send nothing")
     waist: G1Waist = G1Waist.AUTO
     on_locked_waist: G1LockedWaistPolicy = G1LockedWaistPolicy.REFUSE
-    ramp_in_s: float = Field(default=3.0, gt=0, le=60, description="blend weight 0 → 1 from the measured pose (s)")
-    ramp_out_s: float = Field(default=2.0, gt=0, le=60, description="blend weight → 0 on stop, timeout or fault (s)")
+    ramp_in_s: float = Field(default=3.0, ge=G1_MIN_RAMP_S, le=60, description="blend weight 0 → 1 from the measured pose (s)")
+    ramp_out_s: float = Field(default=2.0, ge=G1_MIN_RAMP_S, le=60, description="blend weight → 0 on stop, timeout or fault (s)")
     command_timeout_s: float = Field(default=0.3, gt=0, le=10, description="no new target for this long: ramp out (s)")
     state_timeout_s: float = Field(default=0.1, gt=0, le=10, description="no rt/lowstate for this long: ramp out (s)")
     state_wait_s: float = Field(default=5.0, gt=0, le=120, description="start fails without rt/lowstate within this time (s)")
-    kp: PositiveJointVector = Field(default_factory=lambda: [60.0] * N_JOINTS, description="servo stiffness (N·m/rad)")
-    kd: NonNegativeJointVector = Field(default_factory=lambda: [1.5] * N_JOINTS, description="servo damping (N·m·s/rad)")
+    kp: G1Stiffness = Field(default_factory=lambda: [60.0] * N_JOINTS, description="servo stiffness (N·m/rad, ≤ 500)")
+    kd: G1Damping = Field(default_factory=lambda: [1.5] * N_JOINTS, description="servo damping (N·m·s/rad, ≤ 20)")
     stop_damping: float = Field(
         default=2.0, ge=1, le=5,
         description="kd of the imitation joints × this while the safety service commands a protective stop "
         "(JointCommand.protective_stop): the arms brake to rest with less overshoot. At kp 60 / kd 1.5 the shoulders' "
         "damping ratio is ≈ 0.2 (our model's inertia at home), 0.43 at ×2; check on the robot before raising it",
     )
-    max_speed: PositiveJointVector = Field(
+    max_speed: G1Speed = Field(
         default_factory=lambda: [3.0, 3.0, 6.0, 6.0, 6.0, 6.0, 6.0, 6.0],
-        description="the sent target moves at most this fast (rad/s)",
+        description="the sent target moves at most this fast (rad/s, ≤ the motors' 37)",
     )
     position_margin: float = Field(default=0.05, ge=0, le=0.3, description="targets stay this far inside the joint range (rad)")
     torque_fraction: float = Field(
@@ -461,7 +478,8 @@ class G1Config(_Section):
         "Leaning the torso over the running balance controller (worst: forward, with the arms raised forward) makes "
         "the G1 lean forward and lose balance (unitree_sdk2_python issues #146, #173; a small backward pitch "
         "helped in #173), so forward pitch (G1 +) is limited to 0.05, backward to 0.15, roll to ±0.1; {} : the "
-        "hardware range. Put the same range in the robot description's limits so the safety layer plans with it",
+        "hardware range. With executor.backend g1 every service reads it into the robot description, so the safety "
+        "layer plans with it (shared.robot_spec.configured_robot_spec)",
     )
 
     @model_validator(mode="after")

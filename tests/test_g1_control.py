@@ -385,3 +385,13 @@ def test_the_executor_warns_when_only_its_flag_says_g1(caplog: pytest.LogCapture
         assert not caplog.records
         _warn_if_only_here(g1, load_config(environ={}))
     assert len(caplog.records) == 1 and "put executor.backend: g1 in the configuration" in caplog.text
+
+
+@pytest.mark.parametrize("bad", [{"kp": [60.0] * 7 + [1e6]}, {"kd": [1.5] * 7 + [1e4]}, {"max_speed": [6.0] * 7 + [1e6]},
+                                 {"ramp_in_s": 0.01}, {"ramp_out_s": 0.01}])
+def test_no_configuration_drives_the_motors_beyond_what_they_are_meant_for(bad) -> None:
+    """Gains, the target's speed (which also bounds the last check's jump) and the hand-over ramps
+    have hard limits: a typo or another robot's value is refused, not sent."""
+    with pytest.raises(ValueError):
+        G1Config(**bad)
+    assert G1Config(kp=[500.0] * 8, kd=[20.0] * 8, max_speed=[37.0] * 8, ramp_in_s=0.25, ramp_out_s=0.25)
