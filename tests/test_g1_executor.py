@@ -17,12 +17,13 @@ import pytest
 
 pytest.importorskip("cyclonedds", reason="CycloneDDS's Python package is not installed: pip install 'safemimic[g1]'")
 
+from services.executor.g1.executor import G1Executor  # noqa: E402
 from services.executor.g1.fake_robot import BALANCE_POSE  # noqa: E402
 from services.executor.g1.layout import ARM_SDK_HOLD_GAINS, ARM_SDK_SLOTS, WEIGHT_SLOT  # noqa: E402
 from shared.bus import Bus  # noqa: E402
-from shared.config import BusConfig  # noqa: E402
+from shared.config import BusConfig, load_config  # noqa: E402
 from shared.messages import JointCommand  # noqa: E402
-from shared.robot_spec import default_robot_spec_path, load_robot_spec  # noqa: E402
+from shared.robot_spec import configured_robot_spec, default_robot_spec_path, load_robot_spec  # noqa: E402
 from tests.support.bus import BusRecorder  # noqa: E402
 from tests.support.processes import free_port  # noqa: E402
 
@@ -269,3 +270,35 @@ def test_dry_run_sends_nothing_and_prints_checked_frames(spawn, tmp_path: Path) 
     assert frame["dry_run"] and frame["topic"] == "rt/arm_sdk" and frame["checked"]
     assert frame["commanded_slots"] == list(ARM_SDK_SLOTS) and set(frame["imitation"]) == set(SPEC.imitation_joints)
     assert "DRY RUN" in "".join(service.output)
+
+
+def test_a_failing_write_does_not_end_the_ramp_out(spawn, tmp_path: Path) -> None:
+    """The DDS writer fails on every other frame while the executor stops (the failure that may have
+    stopped the service): the ramp-out goes on and the robot's last frames carry weight 0."""
+    dds = domain()
+    robot, record = start_robot(spawn, tmp_path, dds)
+    conf = load_config(environ={}, overrides={"executor": {"backend": "g1", "g1": {
+        "domain_id": dds, "network_interface": "lo", "ramp_in_s": RAMP_IN_S, "ramp_out_s": RAMP_OUT_S}}})
+    executor = G1Executor(configured_robot_spec(conf), conf.executor.g1, 0.002)
+    executor.start()
+    t0 = time.monotonic()
+    while time.monotonic() < t0 + RAMP_IN_S + 0.5:  # hand over to a held target, to full weight
+        executor.apply_command(executor.q_home, np.zeros(8))
+        executor.tick()
+        time.sleep(0.002)
+    assert executor.controller.weight == 1.0
+    write, calls = executor._writer.write, []
+
+    def flaky(frame) -> None:
+        calls.append(frame)
+        if len(calls) % 2:
+            raise RuntimeError("DDS write failed")
+        write(frame)
+
+    executor._writer.write = flaky
+    executor.stop()
+    assert executor.stop_tick_errors > 10 and executor.counters()["stop_tick_errors"] == executor.stop_tick_errors
+    stop(robot)
+    w = load(record)["q"][:, WEIGHT_SLOT].astype(float)
+    assert w.max() == 1.0 and (w[-5:] == 0.0).all(), w[-20:]
+    assert np.all(np.diff(w[np.argmax(w == 1.0):]) <= 1e-6), "the weight only goes down once the ramp-out began"

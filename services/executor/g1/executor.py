@@ -54,6 +54,7 @@ class G1Executor(Executor):
         self.frames_sent = 0
         self.frames_withheld = 0
         self.frames_printed = 0
+        self.stop_tick_errors = 0
         self._dds: ModuleType | None = None  # services.executor.g1.dds, imported by start()
         self._link: Any = None
         self._reader: Any = None
@@ -104,7 +105,12 @@ class G1Executor(Executor):
                  " (DRY RUN: nothing is sent)" if self.conf.dry_run else "", link.describe())
 
     def stop(self) -> None:
-        """Ramp out (``ramp_out_s``) while still ticking, send :data:`FINAL_FRAMES` more, leave DDS."""
+        """Ramp out (``ramp_out_s``) while still ticking, send :data:`FINAL_FRAMES` more, leave DDS.
+
+        A tick that raises (a DDS write failing, the very failure that may have stopped the service)
+        is counted (``stop_tick_errors``) and the ramp goes on: the weight follows the clock, so each
+        tick that gets through carries the ramp's weight and the last ones weight 0; stopping at the
+        first failure would leave the robot at the last frame's weight, possibly 1."""
         if self._link is None:
             return
         due = time.monotonic()
@@ -112,7 +118,12 @@ class G1Executor(Executor):
         ramp_end = due + self.conf.ramp_out_s + 1.0  # the ramp takes ramp_out_s at most
         final = 0
         while final < FINAL_FRAMES:
-            self.tick()
+            try:
+                self.tick()
+            except Exception as exc:  # noqa: BLE001 - any failure: keep ramping out (docstring)
+                if not self.stop_tick_errors:
+                    log.error("G1 executor: a tick failed while ramping out (%s: %s); going on", type(exc).__name__, exc)
+                self.stop_tick_errors += 1
             if self.controller.finished or time.monotonic() > ramp_end:
                 final += 1
             due += self.period
@@ -179,4 +190,4 @@ class G1Executor(Executor):
         """What the G1 side did (JSON-ready): phase, ramps, faults, drops, frames."""
         return {"backend": "g1", "topic": self.topic, "dry_run": self.conf.dry_run, "frames_sent": self.frames_sent,
                 "frames_withheld": self.frames_withheld, "frames_printed": self.frames_printed,
-                **self.controller.summary()}
+                "stop_tick_errors": self.stop_tick_errors, **self.controller.summary()}
