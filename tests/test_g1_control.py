@@ -129,6 +129,25 @@ def test_ramp_in_starts_at_the_measured_pose_and_reaches_full_weight() -> None:
     np.testing.assert_allclose(targets(frames, np.array(held)), np.tile(POSE[held], (len(frames), 1)), atol=1e-6)
 
 
+@pytest.mark.parametrize("phase", ["ramp-in", "ramp-out"])
+def test_a_stalled_loop_resumes_the_ramp_where_it_was(phase: str) -> None:
+    """A tick 0.4 s late (a loaded computer) moves the weight by two control periods' worth, as the
+    targets: never the 80 % of the ramp that the clock alone would make of it."""
+    robot = Robot()
+    goal = robot.ctl.q_home
+    robot.run(0.1 if phase == "ramp-in" else 0.8, goal)  # 0.5 s ramp-in: part way / done
+    if phase == "ramp-out":
+        robot.ctl.begin_stop(robot.t)
+        robot.run(0.1, goal)
+    before = robot.ctl.weight
+    robot.t += 0.4  # the stall
+    robot.ctl.update_state(state(robot.t, robot.q))
+    robot.ctl.command(robot.t, goal, np.zeros(8))
+    robot.ctl.step(robot.t)
+    ramp = robot.ctl.conf.ramp_in_s if phase == "ramp-in" else robot.ctl.conf.ramp_out_s
+    assert 0.0 < abs(robot.ctl.weight - before) <= 2 * PERIOD / ramp + 1e-9, (before, robot.ctl.weight)
+
+
 @pytest.mark.parametrize("upper_body", [False, True])
 def test_a_protective_stop_damps_the_imitated_joints_by_stop_damping_until_a_command_that_is_not(upper_body: bool) -> None:
     """kd of the imitated slots × ``stop_damping`` while the newest command is a protective stop; the

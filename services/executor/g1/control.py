@@ -14,14 +14,16 @@ Phases::
                                      ▼
                                    FAULT (w = 0 until restart)
 
-The blend weight ``w`` ∈ [0, 1] moves linearly: 0 → 1 in ``ramp_in_s``, → 0 in ``ramp_out_s``.
+The blend weight ``w`` ∈ [0, 1] moves linearly: 0 → 1 in ``ramp_in_s``, → 0 in ``ramp_out_s``, by
+the time each tick covers, at most :data:`_MAX_STEP_PERIODS` control periods (a stalled loop resumes
+the ramp where it was: the weight never jumps, as the targets never do).
 ``rt/arm_sdk``: ``w`` is sent in ``motor_cmd[29].q`` and the robot blends our upper-body command
 with its balance controller's. ``rt/lowcmd``: there is no balance controller, so ``w`` scales the
 stiffness (kp·w, kd kept): at 0 every motor only damps.
 
-What is commanded: in ``arm_sdk`` mode the imitation joints only, so every other motor keeps the
-balance controller's values (``arm_sdk_joints: imitation``, the default), or all 17 upper-body motors
-(12–28) as Unitree's example does (``upper_body``); in ``lowcmd`` mode all 29. Imitated joints follow
+What is commanded: in ``arm_sdk`` mode all 17 upper-body motors (12–28) as Unitree's example does
+(``arm_sdk_joints: upper_body``, the default), or the imitation joints only, so every other motor
+keeps whatever the firmware makes of an unset slot (``imitation``); in ``lowcmd`` mode all 29. Imitated joints follow
 the targets; every other commanded joint holds the pose measured when the ramp-in began. Motors the unit lacks (locked waist, 23-DoF wrists) are
 never commanded. While IDLE the frame carries ``w = 0`` and the measured pose, so a ramp-in always
 starts where the robot is.
@@ -168,8 +170,6 @@ class G1Controller:
         self.phase = Phase.IDLE
         self.weight = 0.0
         self.state: G1State | None = None
-        self._phase_start = 0.0
-        self._weight_start = 0.0
         self._stopping = False
         self._last_step: float | None = None
         self._target = np.zeros(NUM_BODY_MOTORS)  # slot targets (rad)
@@ -285,16 +285,16 @@ class G1Controller:
         """Ramp out and stay out (the executor is stopping)."""
         self._stopping = True
         if self.phase in (Phase.RAMP_IN, Phase.ACTIVE):
-            self._enter(Phase.RAMP_OUT, now, "stop")
+            self._enter(Phase.RAMP_OUT, "stop")
 
     def fault(self, now: float, reason: str) -> None:
         """Latch a fault: ramp out now, never ramp in again."""
         self.counters["faults"].append(reason)
         log.error("G1 fault: %s; ramping out and staying out until restart", reason)
         if self.phase in (Phase.RAMP_IN, Phase.ACTIVE):
-            self._enter(Phase.RAMP_OUT, now, "fault")
+            self._enter(Phase.RAMP_OUT, "fault")
         elif self.phase is Phase.IDLE:
-            self._enter(Phase.FAULT, now, "fault")
+            self._enter(Phase.FAULT, "fault")
 
     @property
     def finished(self) -> bool:
@@ -313,7 +313,7 @@ class G1Controller:
             raise RuntimeError("G1Controller.step before attach()")
         dt = self.period if self._last_step is None else min(max(now - self._last_step, 0.0), _MAX_STEP_PERIODS * self.period)
         self._last_step = now
-        self._advance_phase(now)
+        self._advance_phase(now, dt)
         self._update_targets(dt)
         frame = self._frame()
         problems = self._check(frame)
@@ -342,33 +342,34 @@ class G1Controller:
     def _fresh_command(self, now: float) -> bool:
         return now - self._command_time <= self.conf.command_timeout_s
 
-    def _enter(self, phase: Phase, now: float, reason: str) -> None:
+    def _enter(self, phase: Phase, reason: str) -> None:
         if phase is Phase.RAMP_IN:
             self.counters["ramp_ins"] += 1
         elif phase is Phase.RAMP_OUT:
             self.counters["ramp_outs"][reason] = self.counters["ramp_outs"].get(reason, 0) + 1
         log.info("G1 %s → %s (%s), weight %.3f", self.phase.value, phase.value, reason, self.weight)
         self.phase = phase
-        self._phase_start = now
-        self._weight_start = self.weight
 
-    def _advance_phase(self, now: float) -> None:
+    def _advance_phase(self, now: float, dt: float) -> None:
+        """The phase at ``now`` and the weight ramped by ``dt`` s (the tick's, capped: module docstring);
+        a ramp entered at this tick starts from the weight it had."""
+        ramping = self.phase
         if self.phase is Phase.IDLE and not self._stopping and not self.faulted:
             if self._fresh_command(now) and self._fresh_state(now):
-                self._enter(Phase.RAMP_IN, now, "commands arriving")
+                self._enter(Phase.RAMP_IN, "commands arriving")
         elif self.phase in (Phase.RAMP_IN, Phase.ACTIVE):
             if not self._fresh_state(now):
-                self._enter(Phase.RAMP_OUT, now, "state timeout")
+                self._enter(Phase.RAMP_OUT, "state timeout")
             elif not self._fresh_command(now):
-                self._enter(Phase.RAMP_OUT, now, "command timeout")
+                self._enter(Phase.RAMP_OUT, "command timeout")
         if self.phase is Phase.RAMP_IN:
-            self.weight = min(1.0, self._weight_start + (now - self._phase_start) / self.conf.ramp_in_s)
+            self.weight = min(1.0, self.weight + (dt if ramping is Phase.RAMP_IN else 0.0) / self.conf.ramp_in_s)
             if self.weight >= 1.0:
-                self._enter(Phase.ACTIVE, now, "ramp-in done")
+                self._enter(Phase.ACTIVE, "ramp-in done")
         elif self.phase is Phase.RAMP_OUT:
-            self.weight = max(0.0, self._weight_start - (now - self._phase_start) / self.conf.ramp_out_s)
+            self.weight = max(0.0, self.weight - (dt if ramping is Phase.RAMP_OUT else 0.0) / self.conf.ramp_out_s)
             if self.weight <= 0.0:
-                self._enter(Phase.FAULT if self.faulted else Phase.IDLE, now, "ramp-out done")
+                self._enter(Phase.FAULT if self.faulted else Phase.IDLE, "ramp-out done")
         elif self.phase in (Phase.IDLE, Phase.FAULT):
             self.weight = 0.0
 

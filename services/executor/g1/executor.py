@@ -115,7 +115,8 @@ class G1Executor(Executor):
             return
         due = time.monotonic()
         self.controller.begin_stop(due)
-        ramp_end = due + self.conf.ramp_out_s + 1.0  # the ramp takes ramp_out_s at most
+        # on time the ramp takes ramp_out_s; late ticks advance it by 2 periods at most each (control.py)
+        ramp_end = due + 3.0 * self.conf.ramp_out_s + 1.0
         final = 0
         while final < FINAL_FRAMES:
             try:
