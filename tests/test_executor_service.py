@@ -150,3 +150,33 @@ def test_bad_robot_model_is_a_clear_error(spawn, tmp_path) -> None:
     assert service.popen.wait(30) == 2
     time.sleep(0.1)  # let the reader thread drain stdout
     assert f"robot model {missing} does not exist" in "".join(service.output)
+
+
+def test_the_executor_follows_one_safety_service_at_a_time(spawn) -> None:
+    """Two sessions command at once (an old safety service left running beside a new one): the
+    executor follows the first and refuses the other's commands instead of interleaving both; once
+    the first falls silent past the command timeout, the other is followed."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    service = spawn("-m", "safemimic.cli", "executor", "--mode", "peer", "--listen", endpoint, "--no-multicast")
+    config = BusConfig(mode="peer", connect=[endpoint], multicast_scouting=False)
+    with Bus(config, "g1", "test") as bus, Bus(config, "g1", "second") as other:
+        states = BusRecorder(bus, ("robot/joint_state",), alive=True)
+        states.wait_token("executor", True, timeout_s=20)
+        first_target, second_target = Q_HOME + STEP, Q_HOME - 0.5 * STEP
+        first = Commander(bus, first_target)
+        while not first.first_put:
+            time.sleep(0.001)
+        time.sleep(0.1)
+        second = Commander(other, second_target)
+        time.sleep(1.0)
+        both = [m.q for m in states.between("robot/joint_state", time.monotonic() - 0.5)]
+        assert np.abs(np.array(both) - first_target).max() < 0.02, "only the first is followed"
+        stopped = first.stop()
+        reached, _ = states.wait_timed("robot/joint_state", lambda m: np.abs(m.q - second_target).max() < 0.02,
+                                       timeout_s=3, since=stopped)
+        second.stop()
+    service.popen.terminate()
+    counters = service.wait_json("stopped", timeout=15)
+    assert counters["commander_switches"] == 1
+    assert counters["dropped"].get("robot/command", 0) >= 100  # the second's 200 Hz while the first commanded
+    assert counters["tick_errors"] == 0

@@ -116,13 +116,14 @@ class ExecutorService(ScheduledService):
         self._next_state = -math.inf
         self.refusals = Refusals()
         self.command: Latest[JointCommand] = Latest()
+        self.commander = OneCommander(self.command, conf.executor.command_timeout_s, self.refusals)
         self.human: Latest[HumanState] = Latest()
 
         self.executor.start()
         try:
             self.open_bus(conf, SERVICE_NAME, bus)
             self._state_pub = self.bus.publisher("robot/joint_state")
-            self.bus.subscribe("robot/command", self.command.set)
+            self.bus.subscribe("robot/command", self.commander.offer)
             self.bus.subscribe("human/state", self.human.set)  # HumanState is validated in the robot frame
             self.bus.declare_alive(SERVICE_NAME)
         except Exception:
@@ -232,6 +233,7 @@ class ExecutorService(ScheduledService):
             "tick_p99_us": float(np.percentile(tick_us, 99)),
             "tick_errors": self.tick_errors.total,
             "commands_received": self.command.count,
+            "commander_switches": self.commander.switches,
             "commands_applied": self.commands_applied,
             "clipped_commands": self.clipped_commands,
             "stop_commands": self.stop_commands,
@@ -277,6 +279,41 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     g1.add_argument("--dry-run", action="store_true",
                     help="g1: read rt/lowstate, build and check every frame, print them, send nothing")
     return parser
+
+
+class OneCommander:
+    """The executor follows one commanding source at a time (a ``JointCommand``'s ``source``: one
+    safety service's session). A command from another source is refused (counted on the
+    ``robot/command`` topic) while the current one has commanded within ``hold_s`` (the command
+    timeout, after which the executor holds anyway): two safety services alive at once, an old one
+    left running, would otherwise interleave two trajectories tick by tick. After that silence the
+    first source heard is followed (a restarted safety service: a new session). Thread-safe: called
+    from Zenoh's threads."""
+
+    def __init__(self, latest: Latest[JointCommand], hold_s: float, refusals: Refusals) -> None:
+        self._latest = latest
+        self._hold_s = hold_s
+        self._refusals = refusals
+        self._lock = threading.Lock()
+        self._source: str | None = None
+        self._heard = -math.inf
+        self.switches = 0
+
+    def offer(self, message: JointCommand) -> None:
+        """Take ``message`` (into the newest command) if its source is the one followed, or may become it."""
+        now = time.monotonic()
+        with self._lock:
+            if message.source != self._source:
+                if now - self._heard <= self._hold_s:
+                    self._refusals.refuse("robot/command")
+                    return
+                if self._source is not None:
+                    self.switches += 1
+                    log.warning("commands now from %s (%s silent for %.3f s)", message.source, self._source,
+                                now - self._heard)
+                self._source = message.source
+            self._heard = now
+        self._latest.set(message)
 
 
 def _warn_if_only_here(conf: StackConfig, shared_conf: StackConfig) -> None:
