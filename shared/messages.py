@@ -2,8 +2,10 @@
 
 Every message carries ``schema`` (name, version), ``stamp`` (float seconds), ``seq``
 (per-publisher counter) and ``source`` (publisher id). Arrays are numpy arrays with a
-declared shape and dtype; NaN and Inf are rejected wherever a float appears. Unknown
-fields are rejected (``extra="forbid"``).
+declared shape and dtype; NaN and Inf are rejected wherever a float appears, and so is a
+magnitude no robot or person has (:data:`MAX_COORD_M`, :data:`MAX_SPEED_MPS`, :data:`MAX_ANGLE_RAD`,
+:data:`MAX_RATE_RADPS`): finite garbage such as 1e300 m would overflow the safety layer's distance
+arithmetic into NaN rows, which no QP can honour. Unknown fields are rejected (``extra="forbid"``).
 """
 
 from __future__ import annotations
@@ -31,11 +33,20 @@ N_ANGLES = len(POSE_ANGLE_NAMES)
 N_CAPSULES = len(CAPSULE_NAMES)
 N_JOINTS = len(IMITATION_JOINT_NAMES)
 
+#: Bounds of a valid message's values, far beyond anything real and far below an overflow: a point
+#: (m) from the robot, a point's speed (m/s), an angle (rad; a joint or pose angle never needs more
+#: than two turns) and an angle's rate (rad/s; a person's fastest joint turns at ≈ 40, a G1 motor at 37).
+MAX_COORD_M = 100.0
+MAX_SPEED_MPS = 100.0
+MAX_ANGLE_RAD = 4.0 * math.pi
+MAX_RATE_RADPS = 1000.0
 
-def _array_validator(shape: tuple[int, ...], dtype: type) -> BeforeValidator:
-    """Coerce to a C-contiguous ``dtype`` array of exactly ``shape``; floats must be finite; values
-    of another kind that do not convert within their kind (numpy's ``same_kind``: floats into a
-    bool field, where a NaN would become True) are refused, not cast."""
+
+def _array_validator(shape: tuple[int, ...], dtype: type, limit: float | None = None) -> BeforeValidator:
+    """Coerce to a C-contiguous ``dtype`` array of exactly ``shape``; floats must be finite (and, with
+    ``limit``, of magnitude at most ``limit``); values of another kind that do not convert within
+    their kind (numpy's ``same_kind``: floats into a bool field, where a NaN would become True) are
+    refused, not cast."""
     expected = np.dtype(dtype)
     is_float = expected.kind == "f"
 
@@ -57,8 +68,11 @@ def _array_validator(shape: tuple[int, ...], dtype: type) -> BeforeValidator:
         # A NaN or ±Inf makes the sum non-finite, so a finite sum clears the array; a non-finite sum
         # (NaN/Inf, or finite values overflowing) is settled element by element. Summing Python
         # floats beats a numpy reduction on arrays as small as the messages' (≤ 45 elements).
-        if is_float and not math.isfinite(sum(array.ravel().tolist())) and not np.isfinite(array).all():
+        values = array.ravel().tolist()
+        if is_float and not math.isfinite(sum(values)) and not np.isfinite(array).all():
             raise ValueError("array contains NaN or Inf")
+        if limit is not None and values and max(max(values), -min(values)) > limit:
+            raise ValueError(f"array holds a value of magnitude above {limit:g}")
         return array
 
     return BeforeValidator(coerce)
@@ -67,9 +81,10 @@ def _array_validator(shape: tuple[int, ...], dtype: type) -> BeforeValidator:
 _as_list = PlainSerializer(lambda a: a.tolist(), when_used="json")
 
 
-def Array(*shape: int, dtype: type = np.float64) -> Any:
-    """Annotated numpy array type of a declared shape (use as a field type)."""
-    return Annotated[np.ndarray, _array_validator(tuple(shape), dtype), _as_list]
+def Array(*shape: int, dtype: type = np.float64, limit: float | None = None) -> Any:
+    """Annotated numpy array type of a declared shape, its values of magnitude at most ``limit``
+    (None: any finite value) (use as a field type)."""
+    return Annotated[np.ndarray, _array_validator(tuple(shape), dtype, limit), _as_list]
 
 
 class Schema(BaseModel):
@@ -133,17 +148,17 @@ class HumanState(Message):
 
     SCHEMA_NAME: ClassVar[str] = "HumanState"
     SCHEMA_VERSION: ClassVar[int] = 2
-    keypoints: Array(N_KEYPOINTS, 3)
+    keypoints: Array(N_KEYPOINTS, 3, limit=MAX_COORD_M)
     keypoint_valid: Array(N_KEYPOINTS, dtype=np.bool_)
-    theta: Array(N_ANGLES)
+    theta: Array(N_ANGLES, limit=MAX_ANGLE_RAD)
     theta_valid: Array(N_ANGLES, dtype=np.bool_)
-    theta_rate: Array(N_ANGLES) = Field(
+    theta_rate: Array(N_ANGLES, limit=MAX_RATE_RADPS) = Field(
         default_factory=lambda: np.zeros(N_ANGLES), description="dθ/dt (rad/s); 0 where not computable"
     )
-    capsules: Array(N_CAPSULES, 2, 3)
+    capsules: Array(N_CAPSULES, 2, 3, limit=MAX_COORD_M)
     capsule_radii: Array(N_CAPSULES)
     capsule_valid: Array(N_CAPSULES, dtype=np.bool_)
-    capsule_velocities: Array(N_CAPSULES, 2, 3) | None = None
+    capsule_velocities: Array(N_CAPSULES, 2, 3, limit=MAX_SPEED_MPS) | None = None
     frame_id: Literal["robot"] = Field(
         default="robot", description="always the robot frame: anything else is rejected when decoded"
     )
@@ -167,9 +182,9 @@ class JointState(Message):
     """
 
     SCHEMA_NAME: ClassVar[str] = "JointState"
-    q: Array(N_JOINTS)
-    dq: Array(N_JOINTS)
-    q_command: Array(N_JOINTS) | None = None
+    q: Array(N_JOINTS, limit=MAX_ANGLE_RAD)
+    dq: Array(N_JOINTS, limit=MAX_RATE_RADPS)
+    q_command: Array(N_JOINTS, limit=MAX_ANGLE_RAD) | None = None
     command_stale: bool = False
 
 
@@ -203,8 +218,8 @@ class JointCommand(Message):
 
     SCHEMA_NAME: ClassVar[str] = "JointCommand"
     SCHEMA_VERSION: ClassVar[int] = 4
-    q: Array(N_JOINTS)
-    dq: Array(N_JOINTS)
+    q: Array(N_JOINTS, limit=MAX_ANGLE_RAD)
+    dq: Array(N_JOINTS, limit=MAX_RATE_RADPS)
     ddq: Array(N_JOINTS) = Field(
         default_factory=lambda: np.zeros(N_JOINTS), description="commanded acceleration (rad/s²)"
     )

@@ -37,6 +37,10 @@ from shared.codec import (
 )
 from shared.config import StackConfig
 from shared.messages import (
+    MAX_ANGLE_RAD,
+    MAX_COORD_M,
+    MAX_RATE_RADPS,
+    MAX_SPEED_MPS,
     MESSAGE_TYPES,
     ConfigUpdate,
     HumanState,
@@ -180,6 +184,11 @@ def f64(*shape: int, elements: st.SearchStrategy[float] = FINITE) -> st.SearchSt
     return hnp.arrays(F8, shape, elements=elements)
 
 
+def within(limit: float) -> st.SearchStrategy[float]:
+    """Floats a message field bounded by ``limit`` accepts (its bounds included)."""
+    return st.floats(-limit, limit)
+
+
 def bools(*shape: int) -> st.SearchStrategy[np.ndarray]:
     return hnp.arrays(B1, shape)
 
@@ -199,26 +208,27 @@ FACTORIES: dict[type[Message], st.SearchStrategy[Message]] = {
     HumanState: st.builds(
         HumanState,
         **HEADER,
-        keypoints=f64(15, 3),
+        keypoints=f64(15, 3, elements=within(MAX_COORD_M)),
         keypoint_valid=bools(15),
-        theta=f64(8),
+        theta=f64(8, elements=within(MAX_ANGLE_RAD)),
         theta_valid=bools(8),
-        theta_rate=f64(8),
-        capsules=f64(7, 2, 3),
+        theta_rate=f64(8, elements=within(MAX_RATE_RADPS)),
+        capsules=f64(7, 2, 3, elements=within(MAX_COORD_M)),
         capsule_radii=f64(7, elements=st.floats(0.0, 1.0)),
         capsule_valid=bools(7),
-        capsule_velocities=optional(f64(7, 2, 3)),
+        capsule_velocities=optional(f64(7, 2, 3, elements=within(MAX_SPEED_MPS))),
         frame_id=st.just("robot"),
         capture_stamp=optional(FINITE),
     ),
     JointState: st.builds(
-        JointState, **HEADER, q=f64(8), dq=f64(8), q_command=optional(f64(8)), command_stale=st.booleans()
+        JointState, **HEADER, q=f64(8, elements=within(MAX_ANGLE_RAD)), dq=f64(8, elements=within(MAX_RATE_RADPS)),
+        q_command=optional(f64(8, elements=within(MAX_ANGLE_RAD))), command_stale=st.booleans()
     ),
     JointCommand: st.builds(
         JointCommand,
         **HEADER,
-        q=f64(8),
-        dq=f64(8),
+        q=f64(8, elements=within(MAX_ANGLE_RAD)),
+        dq=f64(8, elements=within(MAX_RATE_RADPS)),
         mode=st.sampled_from(SafetyMode),
         human_stamp=optional(FINITE),
         human_seq=optional(st.integers(0, 2**64 - 1)),
@@ -478,9 +488,11 @@ def test_a_bool_field_refuses_numbers_of_another_kind(field: str) -> None:
 
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
-@pytest.mark.parametrize(("cls", "field"), [(JointState, "q"), (HumanState, "keypoints"), (HumanState, "capsules")])
+@pytest.mark.parametrize(("cls", "field"), [(JointCommand, "ddq")])
 def test_finite_arrays_whose_sum_overflows_are_accepted(cls: type[Message], field: str, sign: float) -> None:
-    """The finite check's cheap sum overflows here: its element-wise fallback accepts, and still refuses NaN/Inf."""
+    """The finite check's cheap sum overflows here: its element-wise fallback accepts, and still refuses
+    NaN/Inf (on a field without a magnitude bound: the bounded ones refuse such values anyway,
+    test_finite_values_no_robot_or_person_has_are_refused)."""
     huge = np.full(ARRAY_FIELDS[cls][field][0], sign * np.finfo(np.float64).max)
     message = make(cls, **{field: huge})
     decoded = decode(encode(message))
@@ -964,3 +976,28 @@ def test_a_schema_version_of_another_type_is_refused() -> None:
         payload["schema"] = {"name": "JointState", "version": version}
         with pytest.raises(CodecError):
             decode(pack(payload))
+
+
+@pytest.mark.parametrize(("message", "field", "value"), [
+    (HumanState, "capsules", MAX_COORD_M * 1.01), (HumanState, "capsules", 1e300), (HumanState, "keypoints", -1e200),
+    (HumanState, "capsule_velocities", 1e300), (HumanState, "theta_rate", 1e300), (HumanState, "theta", 1e6),
+    (JointState, "q", 1e6), (JointState, "dq", -1e6), (JointState, "q_command", 100.0), (JointCommand, "q", 1e6),
+])
+def test_finite_values_no_robot_or_person_has_are_refused(message: type[Message], field: str, value: float) -> None:
+    """Finite garbage (1e300 m) would overflow the safety layer's distances into NaN rows: refused
+    when decoded, naming the field, like NaN."""
+    valid = {
+        HumanState: lambda: HumanState(stamp=1.0, keypoints=np.zeros((15, 3)), keypoint_valid=np.ones(15, bool),
+                                       theta=np.zeros(8), theta_valid=np.ones(8, bool), capsules=np.zeros((7, 2, 3)),
+                                       capsule_radii=np.full(7, 0.05), capsule_valid=np.ones(7, bool),
+                                       capsule_velocities=np.zeros((7, 2, 3))),
+        JointState: lambda: JointState(stamp=1.0, q=np.zeros(8), dq=np.zeros(8), q_command=np.zeros(8)),
+        JointCommand: lambda: JointCommand(stamp=1.0, q=np.zeros(8), dq=np.zeros(8)),
+    }[message]()
+    fields = valid.model_dump()
+    array = np.array(fields[field], dtype=float)
+    array.flat[1] = value
+    with pytest.raises(ValidationError, match=f"{field}[\\s\\S]*magnitude above"):
+        message(**{**fields, field: array})
+    with pytest.raises(CodecError):
+        decode(encode(valid.model_copy(update={field: array})))

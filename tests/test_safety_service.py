@@ -475,6 +475,26 @@ def test_first_joint_state_syncs_to_the_executor_target_and_a_displaced_robot_is
     assert service.counters()["watchdog_trips"] == {"resync": 1}
 
 
+def test_an_executor_that_comes_late_is_joined_at_u_max_not_in_one_jump(service: SafetyService) -> None:
+    """Commands already went out from home (no executor yet) when the first JointState arrives, far
+    from q_cbf: every command still moves at most u_max·Δt; q_cbf joins the robot through the resync."""
+    for _ in range(20):
+        service.tick()
+    q_prev = service.pipeline.filter.q_cbf.copy()
+    far = q_prev + np.array([0.3, -0.3, -1.5, 0.8, 0.0, -1.5, -0.8, 0.0])
+    far = np.clip(far, service.pipeline.filter.q_min, service.pipeline.filter.q_max)
+    step_limit = np.asarray(service.conf.safety.u_max) * service.period + 1e-12
+    for ticks in range(3000):
+        service.joint_state.set(JointState(stamp=0.0, q=far, dq=np.zeros(8), q_command=far))
+        service.tick()
+        q = service.pipeline.filter.q_cbf.copy()
+        assert (np.abs(q - q_prev) <= step_limit).all(), ticks
+        q_prev = q
+        if ticks > 0 and service._resync_target is None:
+            break
+    assert service.resyncs == 1 and np.max(np.abs(q - far)) <= RESYNC_DONE and ticks > 10
+
+
 def test_a_protective_stop_begins_where_the_measured_robot_is(service: SafetyService) -> None:
     """As a protective stop begins (a person's torso through the robot's left forearm), the command
     is first brought to the robot: the newest JointState's q extrapolated by its dq over the time
@@ -649,6 +669,27 @@ def test_vanished_person_is_held_and_stops_imitating_until_forgotten(service: Sa
     result = service.tick(service.human.get().received + 0.01)
     assert not service._memory.lost and result.rows.min_h(False) is None  # rows disabled
     assert service.watchdogs.trips["human_lost"] == 1
+
+
+def test_an_older_config_version_is_refused_not_rolled_back_to(service: SafetyService) -> None:
+    """After v5 is applied, a delayed v4 or a second writer's v1 is refused and counted; v5 again (a
+    config API restarted, republishing) and v6 are taken."""
+    full = load_config(environ={}, overrides={"retargeting": {"method": "linear"}}).model_dump(mode="json")
+    full["safety"]["phi"] = 0.03
+    service.on_config(ConfigUpdate(stamp=0.0, version=5, config=full))
+    service.tick()
+    assert service.config_version == 5
+    stale = {**full, "safety": {**full["safety"], "phi": 0.05}}
+    for version in (4, 1):
+        service.on_config(ConfigUpdate(stamp=0.0, version=version, config=stale))
+        service.tick()
+    assert service.config_version == 5 and service.pipeline.filter.params.phi == 0.03
+    assert service.refusals.own("config") == 2
+    service.on_config(ConfigUpdate(stamp=0.0, version=5, config=full))
+    service.on_config(ConfigUpdate(stamp=0.0, version=6, config=stale))
+    service.tick()
+    assert service.config_version == 6 and service.pipeline.filter.params.phi == 0.05
+    assert service.refusals.own("config") == 2
 
 
 def test_config_update_swaps_pipeline_and_rate(service: SafetyService) -> None:

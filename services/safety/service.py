@@ -215,7 +215,18 @@ class SafetyService(ScheduledService):
                 log.warning("human source %s lost (liveliness token gone): human state is stale", service)
 
     def on_config(self, update: ConfigUpdate) -> None:
-        """Validate an update; build a new pipeline here if the structure changed; queue it."""
+        """Validate an update; build a new pipeline here if the structure changed; queue it.
+
+        An update older than the one applied or queued is refused and counted: versions only grow
+        (the config API numbers past any it saw reported), so a lower one is a delayed copy or a
+        second writer, and applying it would roll back a change already acknowledged."""
+        queued = self._pending.peek()
+        newest = max(self.config_version, queued.version if queued else 0)
+        if update.version < newest:
+            self.refusals.refuse("config")
+            log.warning("refused config update v%d: v%d is newer (a delayed update or a second writer)",
+                        update.version, newest)
+            return
         new = validated_update(update, self.refusals, log)
         if new is None:
             return
@@ -337,10 +348,15 @@ class SafetyService(ScheduledService):
         self.watchdogs.watch("executor_command", message.command_stale, "the executor holds its last target")
         filt = self.pipeline.filter
         if not self._synced:
-            filt.reset(message.q_command if message.q_command is not None else message.q)
             self._synced = True
-            log.info("q_cbf synchronised to the executor's %s", "target" if message.q_command is not None else "measured q")
-            return
+            if self.ticks == 0:  # nothing commanded yet: continue from where the executor is, no jump
+                filt.reset(message.q_command if message.q_command is not None else message.q)
+                log.info("q_cbf synchronised to the executor's %s",
+                         "target" if message.q_command is not None else "measured q")
+                return
+            # commands already went out from q_cbf (an executor that came late): jumping q_cbf to it
+            # would break the rate limit; a robot elsewhere is joined at ≤ u_max, as any displaced one
+            log.info("the executor's first joint state came after %d ticks: joined through the resync", self.ticks)
         deviation = float(np.max(np.abs(message.q - filt.q_cbf)))
         if self._resync_target is None and not self.watchdogs.watch("resync", deviation > RESYNC_TOLERANCE,
                                                           f"measured q is {deviation:.2f} rad from q_cbf"):

@@ -405,10 +405,12 @@ class Stream:
     :data:`shared.bus.RESTART_SILENCE_S`, so the subscriber cannot take it for a restart.
     """
 
-    def __init__(self, hostile: Hostile, cls: type[Message], kinds: tuple[str, ...]) -> None:
+    def __init__(self, hostile: Hostile, cls: type[Message], kinds: tuple[str, ...],
+                 sources: tuple[str, ...] = SOURCES) -> None:
         self.hostile = hostile
         self.cls = cls
         self.kinds = kinds
+        self.sources = sources
         self.clock = 1000.0
         self.heard: dict[str, _Heard] = {}
 
@@ -427,7 +429,7 @@ class Stream:
         in_burst: list[str] = []
         for _ in range(n - 1):
             u = r.random()
-            source = h.pick(SOURCES)
+            source = h.pick(self.sources)
             if u < VALID_SHARE + RESTART_SHARE:
                 restart = u >= VALID_SHARE and source in self.heard
                 last = self.heard.get(source)
@@ -453,7 +455,7 @@ class Stream:
                 out.refused += 1
                 out.kinds[kind] += 1
             out.payloads.append(payload)
-        source = h.pick(SOURCES)
+        source = h.pick(self.sources)
         last = self.heard.get(source)
         out.last, payload = self._valid(source, 0 if last is None else last.seq + 1)
         out.payloads.append(payload)
@@ -482,6 +484,7 @@ class Target:
     tick: Callable[[], list[str]]
     accepted: Callable[[], int] | None = None
     superseded: Callable[[], int] | None = None
+    sources: tuple[str, ...] = SOURCES
 
 
 @dataclass
@@ -618,7 +621,7 @@ def _run_targets(targets: list[Target], hostile: Hostile, injector: Bus, budget:
     for target in targets:
         cls = TOPICS[target.topic]
         kinds = (*hostile.kinds(cls), *(("invalid_config",) * 3 if cls is ConfigUpdate else ()))
-        outcomes[target.topic] = fuzz_target(target, Stream(hostile, cls, kinds), injector,
+        outcomes[target.topic] = fuzz_target(target, Stream(hostile, cls, kinds, target.sources), injector,
                                              budget.per_target[target.name], budget.burst)
     return outcomes
 
@@ -693,8 +696,9 @@ def fuzz_executor(budget: Budget, hostile: Hostile) -> CheckResult:
                 return _finite(q=state.q, dq=state.dq)
 
             targets = [
+                # one commanding session: the executor refuses a second's commands by design (OneCommander)
                 Target("executor robot/command", "robot/command", refused("robot/command"), _holds_latest(svc.command),
-                       tick, lambda: svc.command.count),
+                       tick, lambda: svc.command.count, sources=("safety",)),
                 Target("executor human/state", "human/state", refused("human/state"), _holds_latest(svc.human), tick,
                        lambda: svc.human.count),
             ]
