@@ -495,6 +495,25 @@ def test_an_executor_that_comes_late_is_joined_at_u_max_not_in_one_jump(service:
     assert service.resyncs == 1 and np.max(np.abs(q - far)) <= RESYNC_DONE and ticks > 10
 
 
+def test_a_joint_state_far_outside_the_joint_limits_is_refused_not_followed(service: SafetyService) -> None:
+    """q (or q_command) 0.5 rad past a limit is no robot's: refused and counted, q_cbf neither reset
+    nor resynced to the limit; a joint resting just past its limit (pressed) is still a robot's."""
+    filt = service.pipeline.filter
+    home = filt.q_cbf.copy()
+    for bad in ({"q": np.where(np.arange(8) == 2, filt.q_max + 0.5, home)},
+                {"q": home, "q_command": np.where(np.arange(8) == 5, filt.q_min - 0.5, home)}):
+        service.joint_state.set(JointState(stamp=0.0, dq=np.zeros(8), **bad))
+        for _ in range(5):
+            service.tick()
+    assert service.refusals.own("robot/joint_state") == 2 and service.resyncs == 0
+    np.testing.assert_allclose(filt.q_cbf, home, atol=1e-9)
+    assert service._robot_at(time.monotonic()) is None  # nothing the filter could settle on
+    pressed = np.minimum(home + 0.35, filt.q_max + 0.05)  # beyond the resync tolerance, 5 cm past a limit at most
+    service.joint_state.set(JointState(stamp=0.0, q=pressed, dq=np.zeros(8)))
+    service.tick()
+    assert service.refusals.own("robot/joint_state") == 2
+
+
 def test_a_protective_stop_begins_where_the_measured_robot_is(service: SafetyService) -> None:
     """As a protective stop begins (a person's torso through the robot's left forearm), the command
     is first brought to the robot: the newest JointState's q extrapolated by its dq over the time

@@ -79,6 +79,9 @@ HUMAN_SOURCE_SERVICE = "perception"
 RESYNC_TOLERANCE = 0.3
 #: A resync ends when q_cbf is within this (rad, every joint) of the measured q.
 RESYNC_DONE = 0.05
+#: A JointState whose q (or q_command) lies further than this (rad) outside the joint limits is not
+#: a robot's: refused and counted (a joint rests a little past its limit, pressed, never this far).
+OUTSIDE_LIMITS_REFUSED = 0.1
 #: The executor whose JointState the loop waits for at start (when its liveliness token is present).
 EXECUTOR_SERVICE = "executor"
 #: At start, how long to wait for a live executor's first JointState (s): a restarted safety service
@@ -166,7 +169,8 @@ class SafetyService(ScheduledService):
         self._human_source_lost = False  # the perception service's liveliness token went away
         self._executor_seen = False  # an executor's liveliness token has been seen
         self._human_dirty = True  # re-apply the human state (new message, config change)
-        self._joint_state_seen: Received[JointState] | None = None
+        self._joint_state_seen: Received[JointState] | None = None  # the newest accepted
+        self._joint_state_looked: Received[JointState] | None = None  # the newest looked at
         self._synced = False
         self._resync_target: np.ndarray | None = None  # measured q that q_nom follows during a resync
         self._next_status = -math.inf
@@ -335,18 +339,33 @@ class SafetyService(ScheduledService):
                  new.safety.rate_hz, new.safety.backend.value, new.safety.pairs)
 
     def _sync_joint_state(self, now: float) -> None:
-        """The joint-state and executor watchdogs; the first sync of q_cbf; resync start and end."""
+        """The joint-state and executor watchdogs; the first sync of q_cbf; resync start and end.
+
+        A joint state further than :data:`OUTSIDE_LIMITS_REFUSED` outside the joint limits is refused
+        and counted: it is neither the robot the filter settles on nor fresh for the watchdog."""
         received = self.joint_state.get()
-        if received is None:
+        fresh = received is not None and received is not self._joint_state_looked
+        if fresh:
+            self._joint_state_looked = received
+            filt = self.pipeline.filter
+            outside = max(float(np.max(np.maximum(filt.q_min - q, q - filt.q_max)))
+                          for q in (received.message.q, received.message.q_command) if q is not None)
+            if outside > OUTSIDE_LIMITS_REFUSED:
+                self.refusals.refuse("robot/joint_state")
+                log.warning("refused a joint state %.2f rad outside the joint limits (not a robot's)", outside)
+                fresh = False
+            else:
+                self._joint_state_seen = received
+        accepted = self._joint_state_seen
+        if accepted is None:
             return
-        age = now - received.received
+        age = now - accepted.received
         self.watchdogs.watch("joint_state", age > self.conf.safety.joint_state_timeout_s, f"newest is {age:.3f} s old")
-        if received is self._joint_state_seen:
+        if not fresh:
             return
-        self._joint_state_seen = received
-        message = received.message
-        self.watchdogs.watch("executor_command", message.command_stale, "the executor holds its last target")
+        message = accepted.message
         filt = self.pipeline.filter
+        self.watchdogs.watch("executor_command", message.command_stale, "the executor holds its last target")
         if not self._synced:
             self._synced = True
             if self.ticks == 0:  # nothing commanded yet: continue from where the executor is, no jump
