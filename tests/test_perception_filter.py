@@ -147,14 +147,17 @@ def test_garbage_never_crashes_and_never_yields_nan() -> None:
             xyz[rng.integers(15)] = (np.inf, 0, 0)
         elif kind == 2:
             xyz[:] = np.nan
-        elif kind == 3:
+        elif kind == 3:  # beyond any person (MAX_COORD_M): missing, as no HumanState could carry it
             xyz[rng.integers(15)] *= 1e6
         elif kind == 4:
             confidence[:] = np.nan
+        elif kind == 5:  # a detector's jump within reach: rejected by the filter
+            xyz[rng.integers(15)] += 5.0
         result = pipeline.step(SkeletonFrame(t=i * DT, xyz=xyz, conf=confidence, captured=0.0))
         message = result.to_message(stamp=float(i))  # validates: finite arrays, radii in range
         assert np.isfinite(message.capsule_velocities).all()
-    assert pipeline.counters.frames == 300 and pipeline.counters.rejected_jumps > 0
+    assert pipeline.counters.frames == 300 and pipeline.counters.rejected_jumps > 0  # (to_message validated
+    # every frame: no point beyond MAX_COORD_M reached a HumanState)
 
 
 def test_capsules_follow_the_skeleton_with_configured_radii() -> None:

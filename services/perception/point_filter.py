@@ -41,6 +41,7 @@ from itertools import chain
 import numpy as np
 
 from shared.config import PointFilterConfig, PointFilterKind
+from shared.messages import MAX_COORD_M
 from shared.lowpass import lowpass_gain
 
 #: a point (x, y, z) in metres, or a velocity in m/s
@@ -200,8 +201,10 @@ class PointFilter:
         fresh = [False] * self.n_points
         for k, (x, c) in enumerate(zip(xyz.tolist(), confidence.tolist())):
             x0, x1, x2 = x
-            # A sum is finite iff all three coordinates are; a NaN confidence compares False.
-            if not (math.isfinite(x0 + x1 + x2) and c >= min_confidence):
+            # A sum is finite iff all three coordinates are; a NaN confidence compares False. A point
+            # beyond MAX_COORD_M is no person's (a detector's garbage) and no HumanState could carry it.
+            if not (math.isfinite(x0 + x1 + x2) and c >= min_confidence
+                    and max(abs(x0), abs(x1), abs(x2)) <= MAX_COORD_M):
                 candidate_n[k] = 0
                 continue
             since = t - accepted_t[k]
