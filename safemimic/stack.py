@@ -28,6 +28,7 @@ from services.perception.placement import parse_placement
 from services.perception.scenarios import get_scenario, scenario_recording
 from shared.body import Body
 from shared.config import DEFAULT_CONFIG_PATH, PerceptionConfig, load_config
+from shared.realtime import DEFAULT_RT_PRIORITY
 from shared.skeleton import Recording, write_recording
 
 #: The Zenoh router's TCP port (zenoh's default).
@@ -210,7 +211,8 @@ _HEADER = """\
 # launcher (`safemimic demo`) uses too: edit the table, not this file (a test compares them).
 #
 #   docker compose -f deploy/docker-compose.yml up --build
-#   console: http://localhost:8080/  (writes need $SAFEMIMIC_API_TOKEN, else the token the
+#   console: http://localhost:8080/  (reads and writes need $SAFEMIMIC_API_TOKEN through the published
+#   port, which is not loopback for the container, else the token the
 #   config-api prints once in its log); a perception box elsewhere connects to tls/THIS_HOST:7447
 #   with its own certificate (README "Security"; SAFEMIMIC_ROUTER_HOST=THIS_HOST names the router).
 # The one-shot `certs` service makes the CA and one certificate per identity once, into the
@@ -225,7 +227,6 @@ def _healthcheck(test: list[str], start_period: str) -> dict[str, Any]:
 
 def compose_spec() -> dict[str, Any]:
     """The docker compose file as a mapping (router + four services from :data:`SERVICES`)."""
-    lease_ms = load_config(DEFAULT_CONFIG_PATH, environ={}).bus.lease_ms  # zenohd's own default is 10 s
     from safemimic.acl import ROUTER_IDENTITY, identities
 
     names = [ROUTER_IDENTITY, *(identity.name for identity in identities())]
@@ -269,7 +270,11 @@ def compose_spec() -> dict[str, Any]:
                                         "60s"),
         }
         if spec.name == "safety":
-            service["cap_add"] = ["SYS_NICE"]  # SCHED_FIFO for the 500 Hz loop (falls back without it)
+            # SCHED_FIFO for the 500 Hz loop (falls back without it): the image's user is not root, and
+            # Docker gives capabilities to root only (moby #50083), so the RLIMIT_RTPRIO that lets any
+            # user take real-time priorities up to it is what makes it work; cap_add for a root user
+            service["cap_add"] = ["SYS_NICE"]
+            service["ulimits"] = {"rtprio": DEFAULT_RT_PRIORITY}
         if spec.name == "config-api":
             service["environment"]["SAFEMIMIC_API_TOKEN"] = "${SAFEMIMIC_API_TOKEN:-}"
             service["ports"] = [f"{API_PORT}:{COMPOSE_SITE.api_port}/tcp"]

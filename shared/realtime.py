@@ -10,6 +10,10 @@ from contextlib import contextmanager
 
 log = logging.getLogger(__name__)
 
+#: SCHED_FIFO priority the safety service asks for its control loop (modest: below threaded IRQs at
+#: 50); a container's ``rtprio`` limit must allow it (safemimic.stack).
+DEFAULT_RT_PRIORITY = 10
+
 
 def enter_realtime(priority: int) -> str:
     """Put the calling thread under ``SCHED_FIFO`` at ``priority`` (1–99) if the OS allows it.

@@ -62,7 +62,7 @@ from services.safety.human_memory import HumanMemory
 from services.safety.nominal import NominalTrack, frame_stamp
 from services.safety.watchdogs import Watchdogs
 from shared.bus import Bus, Latest, Newest, Received
-from shared.realtime import realtime
+from shared.realtime import DEFAULT_RT_PRIORITY, realtime
 from shared.schedule import FixedRateSchedule
 from shared.service import Pending, Refusals, ScheduledService, StepErrors, StepTimes, validated_update
 from shared.cli_args import add_bus_arguments, config_from_args
@@ -93,8 +93,6 @@ EXECUTOR_DISCOVERY_S = 0.5
 #: GIL switch interval of the service process (s): bounds how long the control thread waits for
 #: a Zenoh callback thread holding the GIL (CPython's default is 5 ms, 2.5 periods at 500 Hz).
 SWITCH_INTERVAL_S = 0.0005
-#: SCHED_FIFO priority the CLI asks for the control loop (modest: below threaded IRQs at 50).
-DEFAULT_RT_PRIORITY = 10
 #: Step times kept for the exit summary's percentiles (a ring buffer: 20 s at 500 Hz).
 _STEP_TIME_WINDOW = 10_000
 #: At most one deadline-miss warning per this many seconds (never per tick).
