@@ -165,3 +165,26 @@ def test_a_braking_box_is_never_empty_and_keeps_its_point_nearest_rest_on_random
         assert (narrow_low <= narrow_high).all()
         assert (narrow_low >= np.minimum(u_prev, 0.0)).all() and (narrow_high <= np.maximum(u_prev, 0.0)).all()
         np.testing.assert_array_equal(np.clip(0.0, narrow_low, narrow_high), np.clip(0.0, low, high))
+
+
+def test_a_person_capsule_whose_numbers_overflow_stops_the_robot_rather_than_losing_its_rows() -> None:
+    """A forearm at 1e300 m (no message carries it now: shared.messages bounds them) would make its
+    rows NaN, which no QP row can hold: the filter treats that capsule as inside a margin and stops,
+    instead of imitating on without its protection."""
+    p = pipeline_for()
+    kin = p.kinematics
+    far = np.array([[3.0, 0.0, 1.0], [3.0, 0.0, 1.2]])
+    capsules = np.repeat(far[None], 7, axis=0)
+    capsules[3] = [[0.35, -0.1, 1.1], [0.35, 1e300, 1.1]]
+    p.barrier.set_external(capsules, np.full(7, 0.05))
+    p.filter.reset(kin.q_home)
+    forward = kin.q_home.copy()
+    forward[2] = -1.4  # the left arm straight forward, into where the forearm would be
+    result = p.filter.step(forward, DT)
+    assert not np.isfinite(result.rows.h[result.rows.enabled & result.rows.soft]).all(), "the scenario's rows are NaN"
+    assert result.protective_stop
+    assert np.isfinite(result.q_cbf).all() and np.isfinite(result.u).all()
+    far_only = np.repeat(far[None], 7, axis=0)  # the same person, finite: no stop
+    p.barrier.set_external(far_only, np.full(7, 0.05))
+    p.filter.reset(kin.q_home)
+    assert not p.filter.step(forward, DT).protective_stop

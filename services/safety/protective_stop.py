@@ -165,6 +165,8 @@ softened as such).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from services.safety.barriers.kernel import any_positive
@@ -205,7 +207,13 @@ def intruded(rows: BarrierRows) -> bool:
     row of the pair barrier's ``rows`` has h < −:data:`VIOLATION_TOL` (the intrusion stop). A row
     against a capsule swept ahead (``safety.human_predict_s``) counts only when the capsule as
     measured is inside (:attr:`BarrierRows.h_measured`): a person expected to come closer is kept
-    out by the rows, not met by a stop."""
+    out by the rows, not met by a stop. An enabled robot–person row whose h is not finite (a
+    person's numbers overflowing the distance arithmetic) counts as inside: such a row cannot
+    enter the QP (``row_moves`` leaves it out), so without the stop that person capsule would
+    silently have no protection at all."""
+    if math.isnan(rows.min_h_all):  # NaN wins np.min: some enabled row has no distance
+        return bool((rows.soft & rows.enabled & ~np.isfinite(rows.h)).any()) or bool(
+            rows.person_inside(-VIOLATION_TOL).any())
     if not rows.min_h_all < -VIOLATION_TOL:  # the smallest h of all enabled rows: none is inside
         return False
     return bool(rows.person_inside(-VIOLATION_TOL).any())
