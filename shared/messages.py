@@ -68,7 +68,7 @@ def _array_validator(shape: tuple[int, ...], dtype: type, limit: float | None = 
         # A NaN or ±Inf makes the sum non-finite, so a finite sum clears the array; a non-finite sum
         # (NaN/Inf, or finite values overflowing) is settled element by element. Summing Python
         # floats beats a numpy reduction on arrays as small as the messages' (≤ 45 elements).
-        values = array.ravel().tolist()
+        values = array.ravel().tolist() if is_float else ()  # the checks below are the floats'
         if is_float and not math.isfinite(sum(values)) and not np.isfinite(array).all():
             raise ValueError("array contains NaN or Inf")
         if limit is not None and values and max(max(values), -min(values)) > limit:

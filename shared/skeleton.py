@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.errors import SafemimicError
+from shared.messages import MAX_COORD_M
 from shared.names import KEYPOINT_INDEX, KEYPOINT_NAMES
 
 #: Segments used to check units: a human upper arm/forearm/thigh is 0.15–0.6 m long.
@@ -31,7 +32,6 @@ _MAX_SEGMENT_M = 1.0
 #: ... and at least this long (a small child's upper arm is ≈ 0.15 m): catches a file in km or
 #: scaled by mistake, whose "person" the robot would never meet.
 _MIN_SEGMENT_M = 0.08
-_MAX_COORD_M = 100.0
 #: The median step of ``t`` may differ from 1/``fps`` by at most this factor (frames dropped now and
 #: then, a rounded fps), not by the 1,000 of milliseconds.
 _MAX_PERIOD_RATIO = 2.0
@@ -124,7 +124,7 @@ def read_recording(path: str | Path) -> Recording:
     _require(bool((canonical_conf > 0).any()), path, "no keypoint in any frame (every point NaN or of confidence 0)")
     _check_units(canonical_xyz, path)
     _check_upright(canonical_xyz, path)
-    _require(bool((np.abs(xyz[finite]) < _MAX_COORD_M).all()), path, f"coordinates beyond {_MAX_COORD_M} m from the origin")
+    _require(bool((np.abs(xyz[finite]) < MAX_COORD_M).all()), path, f"coordinates beyond {MAX_COORD_M} m from the origin")
 
     source = str(arrays["source"]) if "source" in arrays else ""
     return Recording(t=t, xyz=canonical_xyz, conf=canonical_conf, fps=fps, source=source)

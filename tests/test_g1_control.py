@@ -137,7 +137,7 @@ def test_a_stalled_loop_resumes_the_ramp_where_it_was(phase: str) -> None:
     goal = robot.ctl.q_home
     robot.run(0.1 if phase == "ramp-in" else 0.8, goal)  # 0.5 s ramp-in: part way / done
     if phase == "ramp-out":
-        robot.ctl.begin_stop(robot.t)
+        robot.ctl.begin_stop()
         robot.run(0.1, goal)
     before = robot.ctl.weight
     robot.t += 0.4  # the stall
@@ -214,7 +214,7 @@ def test_command_timeout_ramps_out_then_fresh_commands_ramp_in_again() -> None:
 def test_ramp_out_keeps_targets_still() -> None:
     robot = Robot()
     robot.run(0.7, robot.ctl.q_home + 0.05)
-    robot.ctl.begin_stop(robot.t)
+    robot.ctl.begin_stop()
     frames = robot.run(0.5)
     q = targets(frames)
     np.testing.assert_allclose(q, np.tile(q[0], (len(q), 1)), atol=1e-7)

@@ -342,15 +342,17 @@ class SafetyService(ScheduledService):
         A joint state further than :data:`OUTSIDE_LIMITS_REFUSED` outside the joint limits is refused
         and counted: it is neither the robot the filter settles on nor fresh for the watchdog."""
         received = self.joint_state.get()
+        filt = self.pipeline.filter
         fresh = received is not None and received is not self._joint_state_looked
         if fresh:
             self._joint_state_looked = received
-            filt = self.pipeline.filter
             outside = max(float(np.max(np.maximum(filt.q_min - q, q - filt.q_max)))
                           for q in (received.message.q, received.message.q_command) if q is not None)
             if outside > OUTSIDE_LIMITS_REFUSED:
                 self.refusals.refuse("robot/joint_state")
-                log.warning("refused a joint state %.2f rad outside the joint limits (not a robot's)", outside)
+                if self.refusals.own("robot/joint_state") == 1:  # once: at 200 Hz a log line each would flood
+                    log.warning("refused a joint state %.2f rad outside the joint limits (not a robot's); further "
+                                "ones are counted in the status's dropped['robot/joint_state']", outside)
                 fresh = False
             else:
                 self._joint_state_seen = received
@@ -362,7 +364,6 @@ class SafetyService(ScheduledService):
         if not fresh:
             return
         message = accepted.message
-        filt = self.pipeline.filter
         self.watchdogs.watch("executor_command", message.command_stale, "the executor holds its last target")
         if not self._synced:
             self._synced = True

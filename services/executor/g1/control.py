@@ -247,11 +247,11 @@ class G1Controller:
             fast = c & (np.abs(state.dq) > self.conf.fault_speed)
             self._over_torque = np.where(c & (np.abs(state.tau_est) > self._hw_torque), self._over_torque + 1, 0)
             if fast.any():
-                self.fault(state.received, f"joint speed above {self.conf.fault_speed} rad/s at slots "
-                                           f"{np.flatnonzero(fast).tolist()}: {np.abs(state.dq[fast]).round(2).tolist()}")
+                self.fault(f"joint speed above {self.conf.fault_speed} rad/s at slots "
+                           f"{np.flatnonzero(fast).tolist()}: {np.abs(state.dq[fast]).round(2).tolist()}")
             elif (self._over_torque >= TORQUE_FAULT_SAMPLES).any():
                 slots = np.flatnonzero(self._over_torque >= TORQUE_FAULT_SAMPLES).tolist()
-                self.fault(state.received, f"estimated torque above the motor limit at slots {slots}")
+                self.fault(f"estimated torque above the motor limit at slots {slots}")
         return True
 
     def command(self, now: float, q: np.ndarray, dq: np.ndarray, stop: bool = False) -> np.ndarray:
@@ -281,13 +281,13 @@ class G1Controller:
         self.counters["stop_commands"] += int(stop)
         return applied.copy()
 
-    def begin_stop(self, now: float) -> None:
+    def begin_stop(self) -> None:
         """Ramp out and stay out (the executor is stopping)."""
         self._stopping = True
         if self.phase in (Phase.RAMP_IN, Phase.ACTIVE):
             self._enter(Phase.RAMP_OUT, "stop")
 
-    def fault(self, now: float, reason: str) -> None:
+    def fault(self, reason: str) -> None:
         """Latch a fault: ramp out now, never ramp in again."""
         self.counters["faults"].append(reason)
         log.error("G1 fault: %s; ramping out and staying out until restart", reason)
@@ -319,7 +319,7 @@ class G1Controller:
         problems = self._check(frame)
         if problems:
             self.counters["frames_rejected"] += 1
-            self.fault(now, "frame check: " + "; ".join(problems))
+            self.fault("frame check: " + "; ".join(problems))
             if self._last_frame is None:
                 return None
             self._target[:] = self._last_frame["motor_cmd"]["q"][:NUM_BODY_MOTORS]

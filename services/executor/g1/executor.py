@@ -108,13 +108,14 @@ class G1Executor(Executor):
         """Ramp out (``ramp_out_s``) while still ticking, send :data:`FINAL_FRAMES` more, leave DDS.
 
         A tick that raises (a DDS write failing, the very failure that may have stopped the service)
-        is counted (``stop_tick_errors``) and the ramp goes on: the weight follows the clock, so each
-        tick that gets through carries the ramp's weight and the last ones weight 0; stopping at the
-        first failure would leave the robot at the last frame's weight, possibly 1."""
+        is counted (``stop_tick_errors``) and the ramp goes on: the controller's weight falls with
+        every tick whether its frame got out or not, so each frame that gets through carries the
+        ramp's weight and the last ones weight 0; stopping at the first failure would leave the
+        robot at the last frame's weight, possibly 1."""
         if self._link is None:
             return
         due = time.monotonic()
-        self.controller.begin_stop(due)
+        self.controller.begin_stop()
         # on time the ramp takes ramp_out_s; late ticks advance it by 2 periods at most each (control.py)
         ramp_end = due + 3.0 * self.conf.ramp_out_s + 1.0
         final = 0
